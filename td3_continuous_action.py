@@ -1,0 +1,408 @@
+# TD3 (Fujimoto et al. 2018, https://arxiv.org/abs/1802.09477) in CleanRL's single-file style.
+# Differences from CleanRL's td3_continuous_action.py: the twin critics are one batched ensemble,
+# the reported metric is a deterministic evaluation of the actor every --eval-frequency steps,
+# DeepMind Control tasks run through shimmy, and every piece is importable for tests.
+import difflib
+import os
+import random
+import sys
+import time
+from dataclasses import dataclass
+from typing import NamedTuple, Optional
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import torch.optim as optim
+import tyro
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
+
+
+@dataclass
+class Args:
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment"""
+    seed: int = 1
+    """seed of the experiment"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=False`"""
+    cuda: bool = True
+    """if toggled, cuda will be enabled by default (falls back to the CPU when no GPU is found)"""
+    track: bool = False
+    """if toggled, this experiment will be tracked with Weights and Biases"""
+    wandb_project_name: str = "cleanRL"
+    """the wandb's project name"""
+    wandb_entity: Optional[str] = None
+    """the entity (team) of wandb's project"""
+    capture_video: bool = False
+    """whether to record videos of evaluation episodes into `videos/{run_name}` (headless: set MUJOCO_GL=egl)"""
+    save_model: bool = False
+    """whether to save the actor and critics into the `runs/{run_name}` folder"""
+    run_name: Optional[str] = None
+    """name of the run folder under runs/ (default: {env_id}__{exp_name}__{seed}__{unix time})"""
+
+    # Algorithm specific arguments
+    env_id: str = "Hopper-v4"
+    """the id of the environment: a Gymnasium id (Hopper-v4, ...) or dm_control/<domain>-<task>-v0"""
+    total_timesteps: int = 1000000
+    """total timesteps of the experiments"""
+    learning_rate: float = 3e-4
+    """the learning rate of the optimizer"""
+    buffer_size: int = int(1e6)
+    """the replay memory buffer size"""
+    gamma: float = 0.99
+    """the discount factor gamma"""
+    tau: float = 0.005
+    """target smoothing coefficient (default: 0.005)"""
+    batch_size: int = 256
+    """the batch size of sample from the reply memory"""
+    policy_noise: float = 0.2
+    """the scale of policy noise"""
+    exploration_noise: float = 0.1
+    """the scale of exploration noise"""
+    learning_starts: int = 25000
+    """timestep to start learning"""
+    policy_frequency: int = 2
+    """the frequency of training policy (delayed)"""
+    noise_clip: float = 0.5
+    """noise clip parameter of the Target Policy Smoothing Regularization"""
+
+    # Evaluation (the metric the paper reports)
+    eval_frequency: int = 5000
+    """evaluate the deterministic actor every this many environment steps"""
+    eval_episodes: int = 10
+    """the number of episodes per evaluation"""
+
+
+def fail(message: str):
+    """Stop with one line on stderr and exit status 1, no traceback."""
+    raise SystemExit(f"error: {message}")
+
+
+def check_args(args: Args):
+    checks = [
+        (args.total_timesteps > 0, f"--total-timesteps must be > 0, got {args.total_timesteps}"),
+        (args.buffer_size > 0, f"--buffer-size must be > 0, got {args.buffer_size}"),
+        (args.batch_size > 0, f"--batch-size must be > 0, got {args.batch_size}"),
+        (
+            args.learning_starts >= args.batch_size,
+            f"--learning-starts ({args.learning_starts}) must be >= --batch-size ({args.batch_size})",
+        ),
+        (args.learning_rate > 0, f"--learning-rate must be > 0, got {args.learning_rate}"),
+        (0 <= args.gamma <= 1, f"--gamma must be in [0, 1], got {args.gamma}"),
+        (0 < args.tau <= 1, f"--tau must be in (0, 1], got {args.tau}"),
+        (args.policy_noise >= 0, f"--policy-noise must be >= 0, got {args.policy_noise}"),
+        (args.noise_clip >= 0, f"--noise-clip must be >= 0, got {args.noise_clip}"),
+        (args.exploration_noise >= 0, f"--exploration-noise must be >= 0, got {args.exploration_noise}"),
+        (args.policy_frequency > 0, f"--policy-frequency must be > 0, got {args.policy_frequency}"),
+        (args.eval_frequency > 0, f"--eval-frequency must be > 0, got {args.eval_frequency}"),
+        (args.eval_episodes > 0, f"--eval-episodes must be > 0, got {args.eval_episodes}"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            fail(message)
+
+
+def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
+    return gym.spaces.Box(space.low.astype(np.float32), space.high.astype(np.float32), dtype=np.float32)
+
+
+def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_every: int = 1):
+    """One environment with a flat float32 observation and a float32 Box action space.
+
+    A plain (not vectorised) env: the loop sees the true final observation of every episode and
+    resets itself, so no autoreset step can end up in the replay buffer."""
+    if env_id.startswith("dm_control/"):
+        import shimmy  # registers the DeepMind Control tasks as dm_control/<domain>-<task>-v0
+
+        gym.register_envs(shimmy)
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
+        hint = f"did you mean {', '.join(close)}?" if close else "use e.g. Hopper-v4 or dm_control/cartpole-swingup-v0"
+        fail(f"unknown --env-id {env_id!r}; {hint}")
+    try:
+        env = gym.make(env_id, render_mode="rgb_array" if video_folder else None)
+    except Exception as e:  # a registered id whose dependencies are missing, e.g. Hopper-v3 (mujoco-py)
+        fail(f"could not create --env-id {env_id!r}: {type(e).__name__}: {e}")
+    if not isinstance(env.action_space, gym.spaces.Box):
+        fail(f"--env-id {env_id!r} has a {type(env.action_space).__name__} action space; only continuous (Box) actions are supported")
+    if isinstance(env.observation_space, gym.spaces.Dict):  # DeepMind Control observations are dicts of arrays
+        env = gym.wrappers.FlattenObservation(env)
+    env = gym.wrappers.TransformObservation(env, lambda obs: obs.astype(np.float32), float32_box(env.observation_space))
+    if env.action_space.dtype != np.float32:  # DeepMind Control declares float64 actions
+        to_env_dtype = lambda action, dtype=env.action_space.dtype: np.asarray(action, dtype=dtype)  # noqa: E731
+        env = gym.wrappers.TransformAction(env, to_env_dtype, float32_box(env.action_space))
+    env = gym.wrappers.RecordEpisodeStatistics(env)
+    if video_folder:
+        env = gym.wrappers.RecordVideo(env, video_folder, episode_trigger=lambda episode: episode % video_every == 0)
+    env.action_space.seed(seed)
+    return env
+
+
+# ALGO LOGIC: initialize agent here:
+class QEnsemble(nn.Module):
+    """`num_q` critics concat(obs, action) -> 256 -> 256 -> 1, each layer's weights stacked into one
+    [num_q, in, out] tensor so that one batched matmul evaluates every member."""
+
+    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2, hidden: int = 256):
+        super().__init__()
+        sizes = [obs_dim + action_dim, hidden, hidden, 1]
+        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
+        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+            bound = fan_in**-0.5  # the default init of nn.Linear, drawn independently per member
+            self.weights.append(nn.Parameter(torch.empty(num_q, fan_in, fan_out).uniform_(-bound, bound)))
+            self.biases.append(nn.Parameter(torch.empty(num_q, 1, fan_out).uniform_(-bound, bound)))
+
+    def forward(self, obs, actions, members=slice(None), detach_params=False):
+        """Q-values [num_q, batch]. `members` selects a subset; `detach_params` lets gradients reach
+        the actions only, which is all an actor loss needs."""
+        x = torch.cat([obs, actions], -1)
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            w, b = w[members], b[members]
+            if detach_params:
+                w, b = w.detach(), b.detach()
+            x = torch.baddbmm(b, x.expand(w.shape[0], -1, -1) if i == 0 else x, w)
+            if i < last:
+                x = F.relu(x)
+        return x.squeeze(-1)
+
+
+class Actor(nn.Module):
+    def __init__(self, obs_dim: int, action_space: gym.spaces.Box):
+        super().__init__()
+        self.fc1 = nn.Linear(obs_dim, 256)
+        self.fc2 = nn.Linear(256, 256)
+        self.fc_mu = nn.Linear(256, int(np.prod(action_space.shape)))
+        # action rescaling
+        low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in (action_space.low, action_space.high))
+        self.register_buffer("action_scale", (high - low) / 2.0)
+        self.register_buffer("action_bias", (high + low) / 2.0)
+        self.register_buffer("action_low", low)
+        self.register_buffer("action_high", high)
+
+    def forward(self, x):
+        x = F.relu(self.fc1(x))
+        x = F.relu(self.fc2(x))
+        x = torch.tanh(self.fc_mu(x))
+        return x * self.action_scale + self.action_bias
+
+
+class Batch(NamedTuple):
+    observations: torch.Tensor
+    actions: torch.Tensor
+    next_observations: torch.Tensor
+    rewards: torch.Tensor
+    terminations: torch.Tensor
+
+
+class ReplayBuffer:
+    """Transitions in one preallocated [capacity, fields] tensor: one row per add, one gather per batch."""
+
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device):
+        self.capacity, self.pos, self.size = capacity, 0, 0
+        self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
+        self.storage = torch.zeros((capacity, sum(self.widths)), dtype=torch.float32, device=device)
+
+    def add(self, obs, action, next_obs, reward, termination):
+        row = np.concatenate([obs, action, next_obs, [reward, termination]], dtype=np.float32)
+        self.storage[self.pos] = torch.from_numpy(row)
+        self.pos = (self.pos + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size: int) -> Batch:
+        indices = torch.randint(self.size, (batch_size,), device=self.storage.device)
+        obs, actions, next_obs, rewards, terminations = self.storage[indices].split(self.widths, dim=1)
+        return Batch(obs, actions, next_obs, rewards.squeeze(1), terminations.squeeze(1))
+
+
+def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Args):
+    """y = r + gamma * (1 - terminated) * min_i Q'_i(s', clip(pi'(s') + clipped noise)) (TD3 Eq. 15)."""
+    with torch.no_grad():
+        clipped_noise = (torch.randn_like(batch.actions) * args.policy_noise).clamp(
+            -args.noise_clip, args.noise_clip
+        ) * target_actor.action_scale
+        next_actions = (target_actor(batch.next_observations) + clipped_noise).clamp(
+            target_actor.action_low, target_actor.action_high
+        )
+        min_qf_next_target = qf_target(batch.next_observations, next_actions).min(0).values
+        return batch.rewards + (1 - batch.terminations) * args.gamma * min_qf_next_target
+
+
+def update_critic(batch: Batch, qf: QEnsemble, q_optimizer, target_actor: Actor, qf_target: QEnsemble, args: Args):
+    next_q_value = td_target(batch, target_actor, qf_target, args)
+    qf_a_values = qf(batch.observations, batch.actions)
+    qf_loss = ((qf_a_values - next_q_value) ** 2).mean(1).sum()  # the sum of each critic's MSE
+    q_optimizer.zero_grad()
+    qf_loss.backward()
+    q_optimizer.step()
+    return qf_loss.detach(), qf_a_values.detach()
+
+
+def update_actor(batch: Batch, actor: Actor, actor_optimizer, qf: QEnsemble):
+    # TD3 trains the actor on the first critic only; the critic's weights get no gradient
+    actor_loss = -qf(batch.observations, actor(batch.observations), members=slice(0, 1), detach_params=True).mean()
+    actor_optimizer.zero_grad()
+    actor_loss.backward()
+    actor_optimizer.step()
+    return actor_loss.detach()
+
+
+@torch.no_grad()
+def soft_update(targets: list, sources: list, tau: float):
+    """target <- tau * source + (1 - tau) * target for every parameter, in one fused call."""
+    target_params = [p for net in targets for p in net.parameters()]
+    source_params = [p for net in sources for p in net.parameters()]
+    torch._foreach_lerp_(target_params, source_params, tau)
+
+
+@torch.no_grad()
+def evaluate(actor: Actor, env: gym.Env, num_episodes: int, seed: int) -> np.ndarray:
+    """Undiscounted returns of `num_episodes` episodes of the noiseless actor. The env is re-seeded
+    each time, so every evaluation sees the same start states."""
+    device = actor.action_scale.device
+    returns = np.zeros(num_episodes)
+    obs, _ = env.reset(seed=seed)
+    for episode in range(num_episodes):
+        if episode > 0:
+            obs, _ = env.reset()
+        done = False
+        while not done:
+            action = actor(torch.as_tensor(obs, device=device)).cpu().numpy()
+            obs, reward, terminated, truncated, _ = env.step(action)
+            returns[episode] += reward
+            done = terminated or truncated
+    return returns
+
+
+def main(args: Args):
+    check_args(args)
+    run_name = args.run_name or f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_dir = os.path.join("runs", run_name)
+
+    # TRY NOT TO MODIFY: seeding
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
+        os.environ.setdefault("MUJOCO_GL", "disable")
+
+    # env setup: the evaluation env is seeded apart from the training env
+    env = make_env(args.env_id, args.seed)
+    eval_seed = args.seed + 100
+    video_folder = f"videos/{run_name}" if args.capture_video else None
+    eval_env = make_env(args.env_id, eval_seed, video_folder, video_every=args.eval_episodes)
+    obs_dim = int(np.prod(env.observation_space.shape))
+    action_dim = int(np.prod(env.action_space.shape))
+
+    if args.track:
+        try:
+            import wandb
+        except ImportError:
+            fail("--track needs Weights and Biases: pip install wandb")
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=run_name,
+            monitor_gym=True,
+            save_code=True,
+        )
+    writer = SummaryWriter(run_dir)
+    writer.add_text(
+        "hyperparameters",
+        "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+    )
+
+    actor = Actor(obs_dim, env.action_space).to(device)
+    qf = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
+    target_actor = Actor(obs_dim, env.action_space).to(device)
+    qf_target = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
+    target_actor.load_state_dict(actor.state_dict())
+    qf_target.load_state_dict(qf.state_dict())
+    q_optimizer = optim.Adam(qf.parameters(), lr=args.learning_rate)
+    actor_optimizer = optim.Adam(actor.parameters(), lr=args.learning_rate)
+
+    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device)
+
+    eval_returns = []  # (step, mean return) of every evaluation
+
+    def run_evaluation(step: int):
+        returns = evaluate(actor, eval_env, args.eval_episodes, eval_seed)
+        eval_returns.append((step, returns.mean()))
+        writer.add_scalar("eval/episodic_return", returns.mean(), step)
+        pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
+        tqdm.write(f"step {step}/{args.total_timesteps}: eval return {returns.mean():.1f} +- {returns.std():.1f}, {sps:.0f} steps/s")
+
+    # the bar goes to a terminal; in a log file the per-evaluation lines above say the same
+    pbar = tqdm(total=args.total_timesteps, unit="step", disable=not sys.stderr.isatty())
+    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}")
+    sps_time, sps_step, sps = time.time(), 0, 0.0
+    run_evaluation(0)
+
+    # TRY NOT TO MODIFY: start the game
+    obs, _ = env.reset(seed=args.seed)
+    for global_step in range(args.total_timesteps):
+        # ALGO LOGIC: put action logic here
+        if global_step < args.learning_starts:
+            actions = env.action_space.sample()
+        else:
+            with torch.no_grad():
+                actions = actor(torch.as_tensor(obs, device=device))
+                actions += torch.normal(0, actor.action_scale * args.exploration_noise)
+                actions = actions.cpu().numpy().clip(env.action_space.low, env.action_space.high)
+
+        # TRY NOT TO MODIFY: execute the game and log data.
+        next_obs, reward, terminated, truncated, info = env.step(actions)
+
+        # a time-limit truncation is stored as not terminated, so its target bootstraps
+        rb.add(obs, actions, next_obs, reward, terminated)
+        obs = next_obs
+        if terminated or truncated:
+            writer.add_scalar("charts/episodic_return", info["episode"]["r"], global_step)
+            writer.add_scalar("charts/episodic_length", info["episode"]["l"], global_step)
+            obs, _ = env.reset()
+
+        # ALGO LOGIC: training.
+        if global_step >= args.learning_starts:
+            iteration = global_step - args.learning_starts + 1
+            batch = rb.sample(args.batch_size)
+            qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
+            if iteration % args.policy_frequency == 0:
+                actor_loss = update_actor(batch, actor, actor_optimizer, qf)
+                soft_update([target_actor, qf_target], [actor, qf], args.tau)
+
+            if global_step % 100 == 0 and iteration >= args.policy_frequency:
+                writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
+                writer.add_scalar("losses/qf_loss", qf_loss.item(), global_step)
+                writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
+
+        if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded
+            sps = (global_step + 1 - sps_step) / (time.time() - sps_time)
+            writer.add_scalar("charts/SPS", sps, global_step)
+            sps_time, sps_step = time.time(), global_step + 1
+        pbar.update(1)
+        if (global_step + 1) % args.eval_frequency == 0 or global_step + 1 == args.total_timesteps:
+            run_evaluation(global_step + 1)
+            sps_time = time.time()
+
+    pbar.close()
+    if args.save_model:
+        model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
+        torch.save({"actor": actor.state_dict(), "qf": qf.state_dict()}, model_path)
+        tqdm.write(f"model saved to {model_path}")
+    env.close()
+    eval_env.close()
+    writer.close()
+    return {"actor": actor, "qf": qf, "rb": rb, "run_dir": run_dir, "eval_returns": eval_returns}
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

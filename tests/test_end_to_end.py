@@ -1,0 +1,121 @@
+"""Whole runs of every script: what they write, what they print, how they refuse bad input."""
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+import tyro
+
+from conftest import REPO, SCRIPTS, load, scalars, small_args
+
+COMMON_TAGS = {
+    "eval/episodic_return",
+    "charts/episodic_return",
+    "charts/episodic_length",
+    "charts/SPS",
+    "losses/qf_loss",
+    "losses/qf_values",
+    "losses/actor_loss",
+}
+# what each script logs beyond the common tags
+EXTRA_TAGS = {"td3": set()}
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+@pytest.mark.parametrize("env_id", ["Hopper-v4", "dm_control/cartpole-swingup-v0"])
+def test_short_run_writes_every_tag(script, env_id, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    module = load(script)
+    args = small_args(module, env_id=env_id, total_timesteps=1200, learning_starts=600, eval_frequency=500, run_name="run")
+    module.main(args)
+    logged = scalars(os.path.join("runs", "run"))
+    assert COMMON_TAGS | EXTRA_TAGS[script] <= set(logged)
+    # evaluations at the start, every --eval-frequency steps, and at the end
+    assert [step for step, _ in logged["eval/episodic_return"]] == [0, 500, 1000, 1200]
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(os.path.join("runs", "run"))
+    acc.Reload()
+    hyperparameters = acc.Tensors("hyperparameters/text_summary")[0].tensor_proto.string_val[0].decode()
+    assert f"|env_id|{env_id}|" in hyperparameters
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_save_model_writes_loadable_weights(script, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    module = load(script)
+    result = module.main(small_args(module, env_id="Pendulum-v1", save_model=True, run_name="run"))
+    path = os.path.join("runs", "run", f"{script}_continuous_action.cleanrl_model")
+    saved = torch.load(path, weights_only=True)
+    actor = result["actor"]
+    for name, tensor in actor.state_dict().items():
+        torch.testing.assert_close(saved["actor"][name], tensor)
+    assert "qf" in saved
+
+
+def run_script(script, *flags, env=None):
+    return subprocess.run(
+        [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **(env or {})},
+        timeout=300,
+    )
+
+
+BAD_INPUTS = [
+    (["--env-id", "Hoper-v4"], "did you mean Hopper-v4"),
+    (["--env-id", "CartPole-v1"], "only continuous (Box) actions"),
+    (["--total-timesteps", "0"], "--total-timesteps must be > 0"),
+    (["--batch-size", "-1"], "--batch-size must be > 0"),
+    (["--buffer-size", "0"], "--buffer-size must be > 0"),
+    (["--learning-starts", "100"], "--learning-starts (100) must be >= --batch-size (256)"),
+    (["--eval-frequency", "0"], "--eval-frequency must be > 0"),
+]
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+@pytest.mark.parametrize("flags, message", BAD_INPUTS, ids=[" ".join(f) for f, _ in BAD_INPUTS])
+def test_bad_input_gets_one_clear_line(script, flags, message, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    module = load(script)
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(tyro.cli(module.Args, args=flags))
+    assert str(exit_info.value).startswith("error: ") and message in str(exit_info.value)
+    assert not os.path.exists("runs")  # refused before anything is written
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_command_line_error_is_one_line_without_traceback(script, tmp_path):
+    result = run_script(script, "--env-id", "Hoper-v4", "--total-timesteps", "10")
+    assert result.returncode != 0
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: unknown --env-id 'Hoper-v4'; did you mean Hopper-v4")
+
+
+def rendering_works():
+    probe = "import gymnasium as gym; e = gym.make('Hopper-v4', render_mode='rgb_array'); e.reset(seed=0); assert e.render().mean() > 0"
+    try:
+        return subprocess.run([sys.executable, "-c", probe], env={**os.environ, "MUJOCO_GL": "egl"}, capture_output=True, timeout=120).returncode == 0
+    except subprocess.TimeoutExpired:
+        return False
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_capture_video_records_evaluation_episodes(script, tmp_path):
+    if not rendering_works():
+        pytest.skip("no headless OpenGL here: MUJOCO_GL=egl could not render Hopper-v4 (install libegl1 / libosmesa6)")
+    flags = ["--env-id", "Hopper-v4", "--total-timesteps", "300", "--learning-starts", "300", "--eval-frequency", "300", "--eval-episodes", "2"]
+    result = subprocess.run(
+        [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags, "--capture-video", "--run-name", "run"],
+        cwd=tmp_path,
+        env={**os.environ, "MUJOCO_GL": "egl"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    videos = sorted(os.listdir(tmp_path / "videos" / "run"))
+    # two evaluations (steps 0 and 300) of two episodes each; the first episode of each is recorded
+    assert [v for v in videos if v.endswith(".mp4")] == ["rl-video-episode-0.mp4", "rl-video-episode-2.mp4"]

@@ -1,0 +1,104 @@
+"""The environment layer every script carries: MuJoCo and DeepMind Control, dtypes, episode ends."""
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from conftest import small_args
+
+
+def test_dmc_dict_observation_is_flattened_to_float32(algo):
+    env = algo.make_env("dm_control/walker-walk-v0", seed=0)
+    raw = env.unwrapped.observation_space  # a Dict, with the scalar 'height' among its entries
+    expected_dim = sum(int(np.prod(space.shape)) for space in raw.spaces.values())
+    assert isinstance(raw, gym.spaces.Dict) and expected_dim == 24
+    assert env.observation_space.shape == (expected_dim,) and env.observation_space.dtype == np.float32
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (expected_dim,) and obs.dtype == np.float32
+    obs, *_ = env.step(env.action_space.sample())
+    assert obs.dtype == np.float32
+
+
+def test_dmc_float64_actions_are_exposed_as_float32_box(algo):
+    env = algo.make_env("dm_control/cheetah-run-v0", seed=0)
+    assert env.unwrapped.action_space.dtype == np.float64
+    assert env.action_space.dtype == np.float32 and env.action_space.shape == (6,)
+    np.testing.assert_array_equal(env.action_space.low, -1.0)
+    np.testing.assert_array_equal(env.action_space.high, 1.0)
+    env.reset(seed=0)
+    env.step(np.ones(6, dtype=np.float32))  # a float32 action reaches dm_control as float64
+
+
+def test_mujoco_observation_and_bounds(algo):
+    env = algo.make_env("Hopper-v4", seed=0)
+    assert env.observation_space.shape == (11,) and env.observation_space.dtype == np.float32
+    assert env.action_space.shape == (3,)
+    obs, _ = env.reset(seed=0)
+    assert obs.dtype == np.float32
+
+
+def test_dmc_episode_ends_by_truncation_at_1000_steps(algo):
+    env = algo.make_env("dm_control/cartpole-balance-v0", seed=0)
+    env.reset(seed=0)
+    ends = []
+    for t in range(1000):
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        if terminated or truncated:
+            ends.append((t, terminated, truncated))
+    assert ends == [(999, False, True)]
+
+
+def test_mujoco_fall_is_a_termination(algo):
+    env = algo.make_env("Hopper-v4", seed=0)
+    env.reset(seed=0)
+    for t in range(1000):
+        _, _, terminated, truncated, _ = env.step(np.ones(3, dtype=np.float32))  # full torque: it falls
+        if terminated or truncated:
+            break
+    assert terminated and not truncated and t < 999
+
+
+def test_action_space_sampling_is_seeded(algo):
+    a = algo.make_env("Hopper-v4", seed=3).action_space.sample()
+    b = algo.make_env("Hopper-v4", seed=3).action_space.sample()
+    c = algo.make_env("Hopper-v4", seed=4).action_space.sample()
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+@pytest.mark.parametrize(
+    "env_id, message",
+    [
+        ("Hoper-v4", "did you mean Hopper-v4"),
+        ("dm_control/cartpole-swingupp-v0", "did you mean dm_control/cartpole-swingup-v0"),
+        ("NoSuchThing-v0", "unknown --env-id 'NoSuchThing-v0'"),
+        ("CartPole-v1", "Discrete action space"),
+    ],
+)
+def test_bad_env_ids_are_rejected_with_a_hint(algo, env_id, message):
+    with pytest.raises(SystemExit, match=message):
+        algo.make_env(env_id, seed=0)
+
+
+def test_buffer_holds_every_transition_with_its_true_final_observation(algo, tmp_path, monkeypatch):
+    """Pendulum's episodes are cut at 200 steps: the buffer must hold the real last observation of
+    each episode (no reset observation in its place) and mark the cut as not terminated."""
+    monkeypatch.chdir(tmp_path)
+    args = small_args(algo, env_id="Pendulum-v1", total_timesteps=450, learning_starts=1000, eval_frequency=450)
+    rb = algo.main(args)["rb"]
+    assert rb.size == 450
+    batch = rb.storage[:450].split(rb.widths, dim=1)
+    obs, actions, next_obs, _, terminations = (field.numpy() for field in batch)
+    assert not terminations.any()
+    # replaying the stored actions from the same start reproduces every stored next observation
+    env = algo.make_env("Pendulum-v1", seed=args.seed)
+    replay_obs, _ = env.reset(seed=args.seed)
+    for t in range(450):
+        np.testing.assert_allclose(obs[t], replay_obs, atol=1e-6)
+        replay_obs, _, terminated, truncated, _ = env.step(actions[t])
+        np.testing.assert_allclose(next_obs[t], replay_obs, atol=1e-6)
+        if terminated or truncated:
+            assert (t + 1) % 200 == 0
+            replay_obs, _ = env.reset()
+            assert not np.allclose(next_obs[t], obs[t + 1])
+        elif t + 1 < 450:
+            np.testing.assert_array_equal(next_obs[t], obs[t + 1])

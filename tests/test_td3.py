@@ -1,0 +1,174 @@
+"""TD3's parts: replay buffer, critic ensemble, target value, updates, target networks."""
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+import td3_continuous_action as td3
+
+OBS_DIM, ACTION_DIM = 4, 2
+SPACE = gym.spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 4.0], np.float32))
+
+
+def filled_buffer(capacity=10, rows=7):
+    rb = td3.ReplayBuffer(capacity, OBS_DIM, ACTION_DIM, torch.device("cpu"))
+    for i in range(rows):  # row i is recognisable from every field
+        rb.add(np.full(OBS_DIM, i), np.full(ACTION_DIM, -i), np.full(OBS_DIM, i + 0.5), 10.0 * i, i % 2)
+    return rb
+
+
+def test_replay_buffer_samples_whole_transitions():
+    torch.manual_seed(0)
+    batch = filled_buffer().sample(500)
+    i = batch.observations[:, 0]
+    assert set(i.tolist()) == set(range(7))
+    torch.testing.assert_close(batch.observations, i[:, None].expand(-1, OBS_DIM))
+    torch.testing.assert_close(batch.actions, -i[:, None].expand(-1, ACTION_DIM))
+    torch.testing.assert_close(batch.next_observations, i[:, None].expand(-1, OBS_DIM) + 0.5)
+    torch.testing.assert_close(batch.rewards, 10.0 * i)
+    torch.testing.assert_close(batch.terminations, i % 2)
+    assert batch.rewards.shape == batch.terminations.shape == (500,)
+
+
+def test_replay_buffer_overwrites_the_oldest_rows_when_full():
+    torch.manual_seed(0)
+    rb = filled_buffer(capacity=5, rows=7)
+    assert rb.size == 5 and rb.pos == 2
+    assert set(rb.sample(500).observations[:, 0].tolist()) == {2, 3, 4, 5, 6}
+
+
+def test_q_ensemble_members_are_independent_mlps():
+    torch.manual_seed(0)
+    qf = td3.QEnsemble(OBS_DIM, ACTION_DIM, num_q=3)
+    obs, actions = torch.randn(8, OBS_DIM), torch.randn(8, ACTION_DIM)
+    q = qf(obs, actions)
+    assert q.shape == (3, 8)
+    for k in range(3):
+        x = torch.cat([obs, actions], 1)
+        for layer, (w, b) in enumerate(zip(qf.weights, qf.biases)):
+            x = x @ w[k] + b[k, 0]
+            x = F.relu(x) if layer < 2 else x
+        torch.testing.assert_close(q[k], x.squeeze(1))
+    torch.testing.assert_close(qf(obs, actions, members=slice(0, 1)), q[:1])
+
+
+def test_q_ensemble_members_start_different():
+    qf = td3.QEnsemble(OBS_DIM, ACTION_DIM, num_q=2)
+    assert not torch.equal(qf.weights[0][0], qf.weights[0][1])
+
+
+def test_actor_respects_asymmetric_bounds():
+    actor = td3.Actor(OBS_DIM, SPACE)
+    with torch.no_grad():
+        actor.fc_mu.bias.fill_(100.0)
+        high = actor(torch.randn(5, OBS_DIM))
+        actor.fc_mu.bias.fill_(-100.0)
+        low = actor(torch.randn(5, OBS_DIM))
+    torch.testing.assert_close(high, torch.tensor([[1.0, 4.0]]).expand(5, -1))
+    torch.testing.assert_close(low, torch.tensor([[-1.0, 0.0]]).expand(5, -1))
+
+
+class RecordingEnsemble:
+    """A fake target ensemble: member k returns (k + 1) * offsets; remembers the actions it saw."""
+
+    def __init__(self, offsets):
+        self.offsets = offsets
+
+    def __call__(self, obs, actions):
+        self.actions = actions
+        return torch.stack([self.offsets * (k + 1) for k in range(3)])
+
+
+def zero_actor():
+    actor = td3.Actor(OBS_DIM, SPACE)
+    with torch.no_grad():
+        for p in actor.parameters():
+            p.zero_()
+    return actor  # always outputs the middle of the box: [0, 2]
+
+
+def batch_of(n, rewards, terminations):
+    return td3.Batch(torch.zeros(n, OBS_DIM), torch.zeros(n, ACTION_DIM), torch.zeros(n, OBS_DIM), rewards, terminations)
+
+
+def test_td_target_takes_min_over_members_and_bootstraps_unless_terminated():
+    offsets = torch.tensor([-1.0, 2.0, 3.0, -4.0])  # negative offsets make the last member the min
+    qf_target = RecordingEnsemble(offsets)
+    args = td3.Args(gamma=0.9, policy_noise=0.0)
+    batch = batch_of(4, torch.tensor([1.0, 1.0, 0.0, 5.0]), torch.tensor([0.0, 1.0, 0.0, 0.0]))
+    y = td3.td_target(batch, zero_actor(), qf_target, args)
+    min_q = torch.minimum(offsets, 3 * offsets)
+    torch.testing.assert_close(y, batch.rewards + 0.9 * (1 - batch.terminations) * min_q)
+    assert y[1] == 1.0  # terminated: the reward alone
+
+
+def test_td_target_noise_is_clipped_scaled_and_kept_in_bounds():
+    torch.manual_seed(0)
+    qf_target = RecordingEnsemble(torch.zeros(4096))
+    args = td3.Args(policy_noise=10.0, noise_clip=0.5)
+    td3.td_target(batch_of(4096, torch.zeros(4096), torch.zeros(4096)), zero_actor(), qf_target, args)
+    noise = qf_target.actions - torch.tensor([0.0, 2.0])
+    # dimension 0: scale 1, clip 0.5 -> [-0.5, 0.5]; dimension 1: scale 2 -> [-1, 1]
+    assert noise[:, 0].abs().max() == pytest.approx(0.5) and noise[:, 1].abs().max() == pytest.approx(1.0)
+    assert noise.std(0).min() > 0.3  # noisy, not constant
+
+
+def test_td_target_is_not_differentiable():
+    actor, qf = td3.Actor(OBS_DIM, SPACE), td3.QEnsemble(OBS_DIM, ACTION_DIM)
+    y = td3.td_target(batch_of(3, torch.ones(3), torch.zeros(3)), actor, qf, td3.Args())
+    assert not y.requires_grad
+
+
+def make_agent():
+    torch.manual_seed(0)
+    actor, qf = td3.Actor(OBS_DIM, SPACE), td3.QEnsemble(OBS_DIM, ACTION_DIM)
+    target_actor, qf_target = td3.Actor(OBS_DIM, SPACE), td3.QEnsemble(OBS_DIM, ACTION_DIM)
+    q_optimizer = torch.optim.Adam(qf.parameters(), lr=1e-3)
+    actor_optimizer = torch.optim.Adam(actor.parameters(), lr=1e-3)
+    batch = td3.Batch(torch.randn(32, OBS_DIM), torch.rand(32, ACTION_DIM), torch.randn(32, OBS_DIM), torch.randn(32), torch.zeros(32))
+    return actor, qf, target_actor, qf_target, q_optimizer, actor_optimizer, batch
+
+
+def snapshot(net):
+    return [p.detach().clone() for p in net.parameters()]
+
+
+def test_critic_update_fits_the_target_and_leaves_actors_alone():
+    actor, qf, target_actor, qf_target, q_optimizer, _, batch = make_agent()
+    actor_before, target_before = snapshot(actor), snapshot(target_actor)
+    losses = [td3.update_critic(batch, qf, q_optimizer, target_actor, qf_target, td3.Args(policy_noise=0.0))[0] for _ in range(50)]
+    assert losses[-1] < 0.5 * losses[0]
+    for before, net in [(actor_before, actor), (target_before, target_actor)]:
+        for a, b in zip(before, net.parameters()):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_actor_update_uses_q1_and_never_touches_the_critic():
+    actor, qf, _, _, _, actor_optimizer, batch = make_agent()
+    qf_before, actor_before = snapshot(qf), snapshot(actor)
+    q1_before = qf(batch.observations, actor(batch.observations))[0].mean().item()
+    loss = td3.update_actor(batch, actor, actor_optimizer, qf)
+    assert loss.item() == pytest.approx(-q1_before, rel=1e-5)
+    assert all(p.grad is None for p in qf.parameters())
+    for a, b in zip(qf_before, qf.parameters()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert any(not torch.equal(a, b) for a, b in zip(actor_before, actor.parameters()))
+    for _ in range(30):
+        td3.update_actor(batch, actor, actor_optimizer, qf)
+    assert qf(batch.observations, actor(batch.observations))[0].mean().item() > q1_before  # ascends Q1
+
+
+def test_soft_update_is_polyak_averaging():
+    source, target = td3.QEnsemble(OBS_DIM, ACTION_DIM), td3.QEnsemble(OBS_DIM, ACTION_DIM)
+    with torch.no_grad():
+        for p in source.parameters():
+            p.fill_(1.0)
+        for p in target.parameters():
+            p.fill_(0.0)
+    for _ in range(3):
+        td3.soft_update([target], [source], tau=0.1)
+    for p in target.parameters():
+        torch.testing.assert_close(p, torch.full_like(p, 1 - 0.9**3))
+    for p in source.parameters():
+        torch.testing.assert_close(p, torch.ones_like(p))
