@@ -43,6 +43,10 @@ class Args:
     """whether to save the actor and critics into the `runs/{run_name}` folder"""
     run_name: Optional[str] = None
     """name of the run folder under runs/ (default: {env_id}__{exp_name}__{seed}__{unix time})"""
+    checkpoint_frequency: int = 0
+    """write `checkpoint.pt` into the run folder at the first episode end after every this many steps, and at the end (0: never)"""
+    resume: Optional[str] = None
+    """continue the run in this folder (e.g. runs/{run_name}) from its checkpoint; flags given with it must match the run's"""
 
     # Algorithm specific arguments
     env_id: str = "Hopper-v4"
@@ -100,6 +104,7 @@ def check_args(args: Args):
         (args.policy_frequency > 0, f"--policy-frequency must be > 0, got {args.policy_frequency}"),
         (args.eval_frequency > 0, f"--eval-frequency must be > 0, got {args.eval_frequency}"),
         (args.eval_episodes > 0, f"--eval-episodes must be > 0, got {args.eval_episodes}"),
+        (args.checkpoint_frequency >= 0, f"--checkpoint-frequency must be >= 0, got {args.checkpoint_frequency}"),
     ]
     for ok, message in checks:
         if not ok:
@@ -149,26 +154,22 @@ class QEnsemble(nn.Module):
 
     def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2, hidden: int = 256):
         super().__init__()
-        sizes = [obs_dim + action_dim, hidden, hidden, 1]
-        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
-        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
-            bound = fan_in**-0.5  # the default init of nn.Linear, drawn independently per member
-            self.weights.append(nn.Parameter(torch.empty(num_q, fan_in, fan_out).uniform_(-bound, bound)))
-            self.biases.append(nn.Parameter(torch.empty(num_q, 1, fan_out).uniform_(-bound, bound)))
+
+        def uniform(fan_in, *shape):  # the default init of nn.Linear, drawn independently per member
+            return nn.Parameter(torch.empty(num_q, *shape).uniform_(-(fan_in**-0.5), fan_in**-0.5))
+
+        self.w1, self.b1 = uniform(obs_dim + action_dim, obs_dim + action_dim, hidden), uniform(obs_dim + action_dim, 1, hidden)
+        self.w2, self.b2 = uniform(hidden, hidden, hidden), uniform(hidden, 1, hidden)
+        self.w3, self.b3 = uniform(hidden, 1, hidden), uniform(hidden, 1)  # the output layer, as rows
 
     def forward(self, obs, actions, members=slice(None), detach_params=False):
         """Q-values [num_q, batch]. `members` selects a subset; `detach_params` lets gradients reach
         the actions only, which is all an actor loss needs."""
+        w1, b1, w2, b2, w3, b3 = (p[members].detach() if detach_params else p[members] for p in self.parameters())
         x = torch.cat([obs, actions], -1)
-        last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            w, b = w[members], b[members]
-            if detach_params:
-                w, b = w.detach(), b.detach()
-            x = torch.baddbmm(b, x.expand(w.shape[0], -1, -1) if i == 0 else x, w)
-            if i < last:
-                x = F.relu(x)
-        return x.squeeze(-1)
+        x = F.relu(torch.baddbmm(b1, x.expand(len(w1), -1, -1), w1))
+        x = F.relu(torch.baddbmm(b2, x, w2))
+        return (x * w3).sum(-1) + b3  # a dot product per member: cheaper than a matmul with one output
 
 
 class Actor(nn.Module):
@@ -232,10 +233,20 @@ def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Arg
         return batch.rewards + (1 - batch.terminations) * args.gamma * min_qf_next_target
 
 
+class NonFiniteError(Exception):
+    """A loss became NaN or infinite; raised before the optimizer step it would have poisoned."""
+
+
+def check_finite(value: torch.Tensor, name: str):
+    if not torch.isfinite(value):
+        raise NonFiniteError(name)
+
+
 def update_critic(batch: Batch, qf: QEnsemble, q_optimizer, target_actor: Actor, qf_target: QEnsemble, args: Args):
     next_q_value = td_target(batch, target_actor, qf_target, args)
     qf_a_values = qf(batch.observations, batch.actions)
     qf_loss = ((qf_a_values - next_q_value) ** 2).mean(1).sum()  # the sum of each critic's MSE
+    check_finite(qf_loss, "qf_loss")
     q_optimizer.zero_grad()
     qf_loss.backward()
     q_optimizer.step()
@@ -245,6 +256,7 @@ def update_critic(batch: Batch, qf: QEnsemble, q_optimizer, target_actor: Actor,
 def update_actor(batch: Batch, actor: Actor, actor_optimizer, qf: QEnsemble):
     # TD3 trains the actor on the first critic only; the critic's weights get no gradient
     actor_loss = -qf(batch.observations, actor(batch.observations), members=slice(0, 1), detach_params=True).mean()
+    check_finite(actor_loss, "actor_loss")
     actor_optimizer.zero_grad()
     actor_loss.backward()
     actor_optimizer.step()
@@ -278,10 +290,72 @@ def evaluate(actor: Actor, env: gym.Env, num_episodes: int, seed: int) -> np.nda
     return returns
 
 
+# Checkpoints: everything needed to continue a run exactly. They are taken at episode boundaries,
+# where an environment holds no state but its random generators, so any env can be resumed.
+CHECKPOINT = "checkpoint.pt"
+# flags that may differ between a run and its resumption: they don't change what is learned
+RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda"}
+
+
+def rng_state(rng) -> dict:
+    """A numpy Generator's or RandomState's (dm_control's) state, in types `weights_only` loading accepts."""
+    if isinstance(rng, np.random.RandomState):
+        name, key, pos, has_gauss, gauss = rng.get_state()
+        return {"legacy": (name, torch.from_numpy(key.astype(np.int64)), pos, has_gauss, gauss)}
+    return {"generator": rng.bit_generator.state}
+
+
+def set_rng_state(rng, state: dict):
+    if "legacy" in state:
+        name, key, pos, has_gauss, gauss = state["legacy"]
+        rng.set_state((name, key.numpy().astype(np.uint32), pos, has_gauss, gauss))
+    else:
+        rng.bit_generator.state = state["generator"]
+
+
+def write_checkpoint(path: str, state: dict):
+    """Write atomically: a kill during the write leaves the previous file intact."""
+    torch.save(state, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(run_dir: str) -> dict:
+    path = os.path.join(run_dir, CHECKPOINT)
+    if not os.path.isdir(run_dir):
+        fail(f"--resume {run_dir}: no such run folder")
+    if not os.path.isfile(path):
+        fail(f"--resume {run_dir}: it holds no {CHECKPOINT} (write one with --checkpoint-frequency N)")
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as e:  # truncated, foreign or corrupt files all land here
+        fail(f"{path} is not a readable checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'no detail'})")
+    script = os.path.basename(__file__)
+    if not isinstance(checkpoint, dict) or checkpoint.get("script") != script:
+        found = checkpoint.get("script") if isinstance(checkpoint, dict) else None
+        fail(f"{path} was not written by {script} (written by {found or 'something else'})")
+    return checkpoint
+
+
+def parse_args(argv=None) -> Args:
+    args = tyro.cli(Args, args=argv)
+    if args.resume:  # the run's own flags become the defaults, so only flags given now can differ
+        args = tyro.cli(Args, args=argv, default=Args(**load_checkpoint(args.resume)["args"]))
+    return args
+
+
 def main(args: Args):
     check_args(args)
-    run_name = args.run_name or f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    run_dir = os.path.join("runs", run_name)
+    checkpoint = load_checkpoint(args.resume) if args.resume else None
+    if checkpoint:
+        differing = [k for k, v in checkpoint["args"].items() if k not in RESUMABLE_FLAGS and getattr(args, k) != v]
+        if differing:
+            flags = ", ".join(f"--{k.replace('_', '-')} {getattr(args, k)} (run: {checkpoint['args'][k]})" for k in differing)
+            fail(f"--resume {args.resume}: {flags}; a resumed run keeps its hyperparameters")
+        run_dir = os.path.normpath(args.resume)
+        run_name = os.path.basename(run_dir)
+    else:
+        run_name = args.run_name or f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
+        run_dir = os.path.join("runs", run_name)
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)
@@ -301,6 +375,59 @@ def main(args: Args):
     obs_dim = int(np.prod(env.observation_space.shape))
     action_dim = int(np.prod(env.action_space.shape))
 
+    actor = Actor(obs_dim, env.action_space).to(device)
+    qf = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
+    target_actor = Actor(obs_dim, env.action_space).to(device)
+    qf_target = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
+    target_actor.load_state_dict(actor.state_dict())
+    qf_target.load_state_dict(qf.state_dict())
+    q_optimizer = optim.Adam(qf.parameters(), lr=args.learning_rate, fused=True)
+    actor_optimizer = optim.Adam(actor.parameters(), lr=args.learning_rate, fused=True)
+
+    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device)
+
+    nets = {"actor": actor, "qf": qf, "target_actor": target_actor, "qf_target": qf_target}
+    optimizers = {"q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer}
+    eval_returns = []  # (step, mean return) of every evaluation
+
+    def snapshot(next_step: int) -> dict:
+        return {
+            "script": os.path.basename(__file__),
+            "args": vars(args),
+            "global_step": next_step,
+            "eval_returns": eval_returns,
+            "nets": {name: net.state_dict() for name, net in nets.items()},
+            "optimizers": {name: opt.state_dict() for name, opt in optimizers.items()},
+            "buffer": {"rows": rb.storage[: rb.size].cpu().clone(), "pos": rb.pos},
+            "rng": {
+                "python": random.getstate(),
+                "numpy": rng_state(np.random.mtrand._rand),
+                "torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state_all() if device.type == "cuda" else [],
+                "action_space": rng_state(env.action_space.np_random),
+                "env": rng_state(env.unwrapped.np_random),
+            },
+        }
+
+    start_step = 0
+    if checkpoint:
+        start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
+        for name, net in nets.items():
+            net.load_state_dict(checkpoint["nets"][name])
+        for name, opt in optimizers.items():
+            opt.load_state_dict(checkpoint["optimizers"][name])
+        rows = checkpoint["buffer"]["rows"]
+        rb.storage[: len(rows)] = rows.to(device)
+        rb.size, rb.pos = len(rows), checkpoint["buffer"]["pos"]
+        rng = checkpoint["rng"]
+        random.setstate(rng["python"])
+        set_rng_state(np.random.mtrand._rand, rng["numpy"])
+        torch.set_rng_state(rng["torch"])
+        if rng["cuda"]:
+            torch.cuda.set_rng_state_all(rng["cuda"])
+        set_rng_state(env.action_space.np_random, rng["action_space"])
+        set_rng_state(env.unwrapped.np_random, rng["env"])
+
     if args.track:
         try:
             import wandb
@@ -315,41 +442,36 @@ def main(args: Args):
             monitor_gym=True,
             save_code=True,
         )
-    writer = SummaryWriter(run_dir)
-    writer.add_text(
-        "hyperparameters",
-        "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
-    )
-
-    actor = Actor(obs_dim, env.action_space).to(device)
-    qf = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
-    target_actor = Actor(obs_dim, env.action_space).to(device)
-    qf_target = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
-    target_actor.load_state_dict(actor.state_dict())
-    qf_target.load_state_dict(qf.state_dict())
-    q_optimizer = optim.Adam(qf.parameters(), lr=args.learning_rate)
-    actor_optimizer = optim.Adam(actor.parameters(), lr=args.learning_rate)
-
-    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device)
-
-    eval_returns = []  # (step, mean return) of every evaluation
+    # a resumed run hides what the killed process logged after its checkpoint
+    writer = SummaryWriter(run_dir, purge_step=start_step if checkpoint else None)
+    if not checkpoint:
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+        )
 
     def run_evaluation(step: int):
         returns = evaluate(actor, eval_env, args.eval_episodes, eval_seed)
-        eval_returns.append((step, returns.mean()))
+        eval_returns.append((step, float(returns.mean())))
         writer.add_scalar("eval/episodic_return", returns.mean(), step)
         pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
         tqdm.write(f"step {step}/{args.total_timesteps}: eval return {returns.mean():.1f} +- {returns.std():.1f}, {sps:.0f} steps/s")
 
-    # the bar goes to a terminal; in a log file the per-evaluation lines above say the same
-    pbar = tqdm(total=args.total_timesteps, unit="step", disable=not sys.stderr.isatty())
-    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}")
-    sps_time, sps_step, sps = time.time(), 0, 0.0
-    run_evaluation(0)
+    # the bar goes to a terminal; in a log file the per-evaluation lines say the same
+    pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
+    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}" + (f", resumed at step {start_step}" if checkpoint else ""))
+    sps_time, sps_step, sps = time.time(), start_step, 0.0
+    next_checkpoint = start_step + args.checkpoint_frequency
 
     # TRY NOT TO MODIFY: start the game
-    obs, _ = env.reset(seed=args.seed)
-    for global_step in range(args.total_timesteps):
+    obs = None  # None: an episode starts at this step
+    for global_step in range(start_step, args.total_timesteps):
+        if global_step % args.eval_frequency == 0:
+            run_evaluation(global_step)
+            sps_time = time.time()
+        if obs is None:
+            obs, _ = env.reset(seed=args.seed if global_step == 0 else None)
+
         # ALGO LOGIC: put action logic here
         if global_step < args.learning_starts:
             actions = env.action_space.sample()
@@ -368,31 +490,41 @@ def main(args: Args):
         if terminated or truncated:
             writer.add_scalar("charts/episodic_return", info["episode"]["r"], global_step)
             writer.add_scalar("charts/episodic_length", info["episode"]["l"], global_step)
-            obs, _ = env.reset()
+            obs = None
 
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
-            iteration = global_step - args.learning_starts + 1
-            batch = rb.sample(args.batch_size)
-            qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
-            if iteration % args.policy_frequency == 0:
-                actor_loss = update_actor(batch, actor, actor_optimizer, qf)
-                soft_update([target_actor, qf_target], [actor, qf], args.tau)
+            try:
+                batch = rb.sample(args.batch_size)
+                qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
+                if global_step % args.policy_frequency == 0:
+                    actor_loss = update_actor(batch, actor, actor_optimizer, qf)
+                    soft_update([target_actor, qf_target], [actor, qf], args.tau)
 
-            if global_step % 100 == 0 and iteration >= args.policy_frequency:
-                writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
-                writer.add_scalar("losses/qf_loss", qf_loss.item(), global_step)
-                writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
+                    if global_step % 100 == 0:
+                        writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
+                        writer.add_scalar("losses/qf_loss", qf_loss.item(), global_step)
+                        writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
+            except NonFiniteError as quantity:
+                path = os.path.join(run_dir, "last_good_state.pt")
+                write_checkpoint(path, snapshot(global_step))
+                fail(f"{quantity} became non-finite at step {global_step} (try a smaller --learning-rate); the last finite state is in {path}")
 
         if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded
             sps = (global_step + 1 - sps_step) / (time.time() - sps_time)
             writer.add_scalar("charts/SPS", sps, global_step)
             sps_time, sps_step = time.time(), global_step + 1
         pbar.update(1)
-        if (global_step + 1) % args.eval_frequency == 0 or global_step + 1 == args.total_timesteps:
-            run_evaluation(global_step + 1)
-            sps_time = time.time()
+        if args.checkpoint_frequency and obs is None and global_step + 1 >= next_checkpoint:
+            write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(global_step + 1))
+            next_checkpoint = global_step + 1 + args.checkpoint_frequency
 
+    if start_step < args.total_timesteps:
+        run_evaluation(args.total_timesteps)
+        if args.checkpoint_frequency:
+            write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(args.total_timesteps))
+    else:
+        tqdm.write(f"{run_dir} had already finished its {args.total_timesteps} steps")
     pbar.close()
     if args.save_model:
         model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
@@ -405,4 +537,4 @@ def main(args: Args):
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(parse_args())

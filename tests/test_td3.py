@@ -46,16 +46,15 @@ def test_q_ensemble_members_are_independent_mlps():
     assert q.shape == (3, 8)
     for k in range(3):
         x = torch.cat([obs, actions], 1)
-        for layer, (w, b) in enumerate(zip(qf.weights, qf.biases)):
-            x = x @ w[k] + b[k, 0]
-            x = F.relu(x) if layer < 2 else x
-        torch.testing.assert_close(q[k], x.squeeze(1))
+        x = F.relu(x @ qf.w1[k] + qf.b1[k, 0])
+        x = F.relu(x @ qf.w2[k] + qf.b2[k, 0])
+        torch.testing.assert_close(q[k], x @ qf.w3[k, 0] + qf.b3[k])
     torch.testing.assert_close(qf(obs, actions, members=slice(0, 1)), q[:1])
 
 
 def test_q_ensemble_members_start_different():
     qf = td3.QEnsemble(OBS_DIM, ACTION_DIM, num_q=2)
-    assert not torch.equal(qf.weights[0][0], qf.weights[0][1])
+    assert not torch.equal(qf.w1[0], qf.w1[1])
 
 
 def test_actor_respects_asymmetric_bounds():

@@ -1,0 +1,194 @@
+"""Checkpoints, exact resume after SIGKILL, safe loading, the NaN guard, and every bad input."""
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from conftest import REPO, SCRIPTS, load, scalars
+
+SHORT = ["--total-timesteps", "2500", "--learning-starts", "1000", "--batch-size", "64", "--eval-frequency", "500", "--eval-episodes", "1"]
+
+
+def script_command(script, *flags):
+    return [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags]
+
+
+def start(script, cwd, *flags):
+    log = open(os.path.join(cwd, f"{flags[flags.index('--run-name') + 1]}.log"), "w")
+    return subprocess.Popen(script_command(script, *flags), cwd=cwd, stdout=log, stderr=subprocess.STDOUT)
+
+
+def final_actor(run_dir, script):
+    return torch.load(os.path.join(run_dir, f"{script}_continuous_action.cleanrl_model"), weights_only=True)["actor"]
+
+
+# OPARL is resumed on a MuJoCo and a DMC task; TD3 and SAC on one each
+KILL_CASES = [
+    (script, env_id)
+    for script, env_id in [("td3", "Hopper-v4"), ("sac", "dm_control/cartpole-swingup-v0"), ("oparl", "Hopper-v4"), ("oparl", "dm_control/cartpole-swingup-v0")]
+    if script in SCRIPTS
+]
+
+
+@pytest.mark.parametrize("script, env_id", KILL_CASES)
+def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, env_id, tmp_path):
+    flags = ["--env-id", env_id, *SHORT, "--save-model"]
+    full = start(script, tmp_path, *flags, "--run-name", "full")
+    killed = start(script, tmp_path, *flags, "--run-name", "killed", "--checkpoint-frequency", "500")
+    checkpoint = tmp_path / "runs" / "killed" / "checkpoint.pt"
+    deadline = time.time() + 240
+    while not checkpoint.exists() and killed.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert checkpoint.exists(), (tmp_path / "killed.log").read_text()
+    time.sleep(random.uniform(0.0, 1.5))  # an arbitrary moment: mid-step, mid-evaluation or mid-write
+    killed.send_signal(signal.SIGKILL)
+    killed.wait()
+    resumed = subprocess.run(script_command(script, "--resume", "runs/killed", "--save-model"), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    assert full.wait(timeout=300) == 0
+
+    full_log, resumed_log = scalars(str(tmp_path / "runs" / "full")), scalars(str(tmp_path / "runs" / "killed"))
+    assert resumed_log["eval/episodic_return"] == full_log["eval/episodic_return"]
+    assert [step for step, _ in resumed_log["eval/episodic_return"]] == [0, 500, 1000, 1500, 2000, 2500]
+    assert resumed_log["losses/qf_loss"] == full_log["losses/qf_loss"]  # no step logged twice or lost
+    full_actor, resumed_actor = final_actor(tmp_path / "runs" / "full", script), final_actor(tmp_path / "runs" / "killed", script)
+    for name in full_actor:
+        assert torch.equal(full_actor[name], resumed_actor[name]), name
+
+
+@pytest.fixture
+def finished_run(tmp_path_factory):
+    """One short checkpointed run per script, shared by the tests that only read it."""
+    cache = {}
+
+    def get(script):
+        if script not in cache:
+            cwd = tmp_path_factory.mktemp(script)
+            flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "400", "--learning-starts", "200", "--batch-size", "32", "--eval-frequency", "400", "--eval-episodes", "1"]
+            result = subprocess.run(script_command(script, *flags, "--run-name", "done", "--checkpoint-frequency", "200"), cwd=cwd, capture_output=True, text=True, timeout=300)
+            assert result.returncode == 0, result.stderr
+            cache[script] = cwd
+        return cache[script]
+
+    return get
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_resuming_a_finished_run_does_nothing(script, finished_run):
+    cwd = finished_run(script)
+    result = subprocess.run(script_command(script, "--resume", "runs/done"), cwd=cwd, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "had already finished its 400 steps" in result.stdout + result.stderr
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_checkpoint_loads_without_running_code(script, finished_run):
+    path = finished_run(script) / "runs" / "done" / "checkpoint.pt"
+    checkpoint = torch.load(path, weights_only=True)
+    assert checkpoint["global_step"] == 400 and checkpoint["script"] == f"{script}_continuous_action.py"
+    assert checkpoint["buffer"]["rows"].shape[0] == 400
+
+
+def one_line_error(result):
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode != 0 and len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_truncated_and_foreign_checkpoints_are_refused(script, finished_run, tmp_path):
+    good = (finished_run(script) / "runs" / "done" / "checkpoint.pt").read_bytes()
+    cases = {
+        "truncated": (good[: len(good) // 2], "is not a readable checkpoint"),
+        "text": (b"hello", "is not a readable checkpoint"),
+    }
+    for name, (content, message) in cases.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "checkpoint.pt").write_bytes(content)
+    (tmp_path / "foreign").mkdir()
+    torch.save({"script": "someone_else.py"}, tmp_path / "foreign" / "checkpoint.pt")
+    cases["foreign"] = (None, "was not written by")
+
+    class Exploit:  # a pickle that would run code when loaded without weights_only
+        def __reduce__(self):
+            return (os.system, ("touch pwned",))
+
+    (tmp_path / "exploit").mkdir()
+    torch.save({"script": f"{script}_continuous_action.py", "x": Exploit()}, tmp_path / "exploit" / "checkpoint.pt")
+    cases["exploit"] = (None, "is not a readable checkpoint")
+    for name, (_, message) in cases.items():
+        result = subprocess.run(script_command(script, "--resume", name), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        assert message in one_line_error(result), name
+    assert not (tmp_path / "pwned").exists()
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_resume_with_other_hyperparameters_is_refused(script, finished_run):
+    result = subprocess.run(script_command(script, "--resume", "runs/done", "--gamma", "0.5"), cwd=finished_run(script), capture_output=True, text=True, timeout=300)
+    assert "--gamma 0.5 (run: 0.99)" in one_line_error(result)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_non_finite_loss_stops_with_the_step_and_the_last_good_state(script, tmp_path):
+    flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "600", "--learning-starts", "100", "--batch-size", "32", "--eval-frequency", "600", "--eval-episodes", "1"]
+    lr_flag = "--learning-rate" if script != "sac" else "--q-lr"
+    result = subprocess.run(script_command(script, *flags, lr_flag, "1e30", "--run-name", "nan"), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    line = one_line_error(result)
+    assert "became non-finite at step" in line and "last_good_state.pt" in line
+    state = torch.load(tmp_path / "runs" / "nan" / "last_good_state.pt", weights_only=True)
+    assert f"at step {state['global_step']} " in line
+    assert all(torch.isfinite(t).all() for net in state["nets"].values() for t in net.values())
+
+
+# (flags, part of the message); each script adds its own in EXTRA_BAD_INPUTS
+BAD_INPUTS = [
+    (["--total-timesteps", "0"], "--total-timesteps must be > 0"),
+    (["--buffer-size", "0"], "--buffer-size must be > 0"),
+    (["--batch-size", "0"], "--batch-size must be > 0"),
+    (["--learning-starts", "10"], "--learning-starts (10) must be >= --batch-size"),
+    (["--gamma", "1.5"], "--gamma must be in [0, 1]"),
+    (["--tau", "0"], "--tau must be in (0, 1]"),
+    (["--tau", "1.5"], "--tau must be in (0, 1]"),
+    (["--policy-frequency", "0"], "--policy-frequency must be > 0"),
+    (["--eval-frequency", "0"], "--eval-frequency must be > 0"),
+    (["--eval-episodes", "0"], "--eval-episodes must be > 0"),
+    (["--checkpoint-frequency", "-1"], "--checkpoint-frequency must be >= 0"),
+    (["--env-id", "Hopper-v9"], "unknown --env-id 'Hopper-v9'; did you mean"),
+    (["--env-id", "CartPole-v1"], "Discrete action space"),
+    (["--env-id", "Hopper-v3"], "could not create --env-id 'Hopper-v3'"),
+    (["--resume", "runs/missing"], "--resume runs/missing: no such run folder"),
+]
+EXTRA_BAD_INPUTS = {
+    "td3": [
+        (["--learning-rate", "0"], "--learning-rate must be > 0"),
+        (["--policy-noise", "-0.1"], "--policy-noise must be >= 0"),
+        (["--noise-clip", "-1"], "--noise-clip must be >= 0"),
+        (["--exploration-noise", "-1"], "--exploration-noise must be >= 0"),
+    ],
+}
+CASES = [(s, flags, message) for s in SCRIPTS for flags, message in BAD_INPUTS + EXTRA_BAD_INPUTS.get(s, [])]
+
+
+@pytest.mark.parametrize("script, flags, message", CASES, ids=[f"{s}: {' '.join(f)}" for s, f, _ in CASES])
+def test_bad_input_is_refused_in_one_line(script, flags, message, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    module = load(script)
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(module.parse_args(flags))
+    assert str(exit_info.value).startswith("error: ") and "\n" not in str(exit_info.value)
+    assert message in str(exit_info.value)
+    assert not os.path.exists("runs")  # refused before anything is written
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_resume_without_checkpoint_is_refused(script, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs" / "empty").mkdir(parents=True)
+    module = load(script)
+    with pytest.raises(SystemExit, match="holds no checkpoint.pt"):
+        module.parse_args(["--resume", "runs/empty"])
