@@ -79,6 +79,8 @@ class Args:
     """evaluate the deterministic actor every this many environment steps"""
     eval_episodes: int = 10
     """the number of episodes per evaluation"""
+    bf16: bool = False
+    """run the training matmuls in bfloat16 (autocast; weights, losses and optimizer states stay float32)"""
 
 
 def fail(message: str):
@@ -495,20 +497,21 @@ def main(args: Args):
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
             try:
-                batch = rb.sample(args.batch_size)
-                qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
-                if global_step % args.policy_frequency == 0:
-                    actor_loss = update_actor(batch, actor, actor_optimizer, qf)
-                    soft_update([target_actor, qf_target], [actor, qf], args.tau)
-
-                    if global_step % 100 == 0:
-                        writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
-                        writer.add_scalar("losses/qf_loss", qf_loss.item(), global_step)
-                        writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
+                with torch.autocast(device.type, torch.bfloat16, enabled=args.bf16):
+                    batch = rb.sample(args.batch_size)
+                    qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
+                    if global_step % args.policy_frequency == 0:
+                        actor_loss = update_actor(batch, actor, actor_optimizer, qf)
+                        soft_update([target_actor, qf_target], [actor, qf], args.tau)
             except NonFiniteError as quantity:
                 path = os.path.join(run_dir, "last_good_state.pt")
                 write_checkpoint(path, snapshot(global_step))
                 fail(f"{quantity} became non-finite at step {global_step} (try a smaller --learning-rate); the last finite state is in {path}")
+
+            if global_step % args.policy_frequency == 0 and global_step % 100 == 0:
+                writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
+                writer.add_scalar("losses/qf_loss", qf_loss.item(), global_step)
+                writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
 
         if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded
             sps = (global_step + 1 - sps_step) / (time.time() - sps_time)

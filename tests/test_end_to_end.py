@@ -15,10 +15,12 @@ COMMON_TAGS = {
     "charts/SPS",
     "losses/qf_loss",
     "losses/qf_values",
-    "losses/actor_loss",
 }
 # what each script logs beyond the common tags
-EXTRA_TAGS = {"td3": set()}
+EXTRA_TAGS = {
+    "td3": {"losses/actor_loss"},
+    "oparl": {"losses/pessimistic_actor_loss", "losses/optimistic_actor_loss", "charts/q_ensemble_std", "charts/optimistic_share", "charts/resets"},
+}
 
 
 @pytest.mark.parametrize("script", SCRIPTS)

@@ -170,6 +170,14 @@ EXTRA_BAD_INPUTS = {
         (["--noise-clip", "-1"], "--noise-clip must be >= 0"),
         (["--exploration-noise", "-1"], "--exploration-noise must be >= 0"),
     ],
+    "oparl": [
+        (["--q-num", "0"], "--q-num must be >= 1"),
+        (["--optimistic-ratio", "1.5"], "--optimistic-ratio must be in [0, 1]"),
+        (["--optimistic-ratio", "-0.1"], "--optimistic-ratio must be in [0, 1]"),
+        (["--num-candidates", "0"], "--num-candidates must be >= 1"),
+        (["--reset-frequency", "-1"], "--reset-frequency must be >= 0"),
+        (["--learning-rate", "-1"], "--learning-rate must be > 0"),
+    ],
 }
 CASES = [(s, flags, message) for s in SCRIPTS for flags, message in BAD_INPUTS + EXTRA_BAD_INPUTS.get(s, [])]
 
