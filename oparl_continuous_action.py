@@ -576,7 +576,7 @@ def main(args: Args):
 
             if global_step % args.policy_frequency == 0 and global_step % 100 == 0:
                 writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
-                writer.add_scalar("losses/qf_loss", qf_loss.item(), global_step)
+                writer.add_scalar("losses/qf_loss", qf_loss.item() / len(qf_a_values), global_step)  # per critic, as CleanRL
                 writer.add_scalar("losses/pessimistic_actor_loss", pessimistic_actor_loss.item(), global_step)
                 writer.add_scalar("losses/optimistic_actor_loss", optimistic_actor_loss.item(), global_step)
                 writer.add_scalar("charts/q_ensemble_std", qf_a_values.std(0).mean().item(), global_step)

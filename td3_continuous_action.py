@@ -510,7 +510,7 @@ def main(args: Args):
 
             if global_step % args.policy_frequency == 0 and global_step % 100 == 0:
                 writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
-                writer.add_scalar("losses/qf_loss", qf_loss.item(), global_step)
+                writer.add_scalar("losses/qf_loss", qf_loss.item() / len(qf_a_values), global_step)  # per critic, as CleanRL
                 writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
 
         if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded

@@ -10,7 +10,7 @@ sys.path.insert(0, REPO)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 # the algorithm scripts, by short name; every script-level test runs on each of them
-SCRIPTS = ["td3", "oparl"]
+SCRIPTS = ["td3", "oparl", "sac"]
 
 
 def load(short_name: str):

@@ -19,6 +19,7 @@ COMMON_TAGS = {
 # what each script logs beyond the common tags
 EXTRA_TAGS = {
     "td3": {"losses/actor_loss"},
+    "sac": {"losses/actor_loss", "losses/alpha", "losses/alpha_loss"},
     "oparl": {"losses/pessimistic_actor_loss", "losses/optimistic_actor_loss", "charts/q_ensemble_std", "charts/optimistic_share", "charts/resets"},
 }
 

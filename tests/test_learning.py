@@ -7,7 +7,7 @@ import pytest
 from conftest import load, small_args
 
 # script: (total steps, learning starts, return the final evaluation must beat)
-BUDGETS = {"td3": (8000, 1000, -400.0), "oparl": (8000, 1000, -400.0)}
+BUDGETS = {"td3": (8000, 1000, -400.0), "oparl": (8000, 1000, -400.0), "sac": (5000, 1000, -400.0)}
 
 
 @pytest.mark.parametrize("script", sorted(BUDGETS))

@@ -170,6 +170,12 @@ EXTRA_BAD_INPUTS = {
         (["--noise-clip", "-1"], "--noise-clip must be >= 0"),
         (["--exploration-noise", "-1"], "--exploration-noise must be >= 0"),
     ],
+    "sac": [
+        (["--policy-lr", "0"], "--policy-lr must be > 0"),
+        (["--q-lr", "-1"], "--q-lr must be > 0"),
+        (["--alpha", "-0.1"], "--alpha must be >= 0"),
+        (["--target-network-frequency", "0"], "--target-network-frequency must be > 0"),
+    ],
     "oparl": [
         (["--q-num", "0"], "--q-num must be >= 1"),
         (["--optimistic-ratio", "1.5"], "--optimistic-ratio must be in [0, 1]"),
