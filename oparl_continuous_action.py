@@ -405,6 +405,9 @@ def main(args: Args):
             fail(f"--resume {args.resume}: {flags}; a resumed run keeps its hyperparameters")
         run_dir = os.path.normpath(args.resume)
         run_name = os.path.basename(run_dir)
+        if checkpoint["global_step"] >= args.total_timesteps:
+            print(f"{run_dir} had already finished its {args.total_timesteps} steps")
+            return {"run_dir": run_dir, "eval_returns": checkpoint["eval_returns"]}
     else:
         run_name = args.run_name or f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
         run_dir = os.path.join("runs", run_name)
@@ -592,12 +595,9 @@ def main(args: Args):
             write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(global_step + 1))
             next_checkpoint = global_step + 1 + args.checkpoint_frequency
 
-    if start_step < args.total_timesteps:
-        run_evaluation(args.total_timesteps)
-        if args.checkpoint_frequency:
-            write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(args.total_timesteps))
-    else:
-        tqdm.write(f"{run_dir} had already finished its {args.total_timesteps} steps")
+    run_evaluation(args.total_timesteps)
+    if args.checkpoint_frequency:
+        write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(args.total_timesteps))
     pbar.close()
     if args.save_model:
         model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")

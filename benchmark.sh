@@ -1,0 +1,230 @@
+#!/usr/bin/env bash
+# Sweep algorithms x tasks x seeds, here (--workers runs at a time, one torch thread each) or as one
+# Slurm job array (--slurm). Re-running the same sweep skips finished runs and resumes the others
+# from their checkpoints. Run `bash benchmark.sh --help` for the flags.
+set -uo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+PAPER_DMC=(
+  dm_control/ball_in_cup-catch-v0 dm_control/cartpole-balance-v0 dm_control/cartpole-balance_sparse-v0
+  dm_control/cartpole-swingup-v0 dm_control/cheetah-run-v0 dm_control/finger-spin-v0 dm_control/fish-swim-v0
+  dm_control/fish-upright-v0 dm_control/hopper-stand-v0 dm_control/pendulum-swingup-v0 dm_control/point_mass-easy-v0
+  dm_control/reacher-easy-v0 dm_control/reacher-hard-v0 dm_control/swimmer-swimmer6-v0 dm_control/swimmer-swimmer15-v0
+  dm_control/walker-run-v0 dm_control/walker-stand-v0 dm_control/walker-walk-v0
+)
+PAPER_MUJOCO=(Ant-v4 Hopper-v4 Humanoid-v4 Walker2d-v4)
+
+usage() {
+  cat <<EOF
+Usage: bash benchmark.sh [flags] [-- flags passed to every script]
+
+  --algos A [A ...]         scripts by short name: {A}_continuous_action.py (default: oparl td3 sac)
+  --env-ids E [E ...]       environment ids (default: the paper's 18 DeepMind Control tasks)
+  --suite dmc|mujoco        the paper's 18 DMC tasks or its 4 MuJoCo tasks (Ant, Hopper, Humanoid, Walker2d -v4)
+  --seeds S [S ...]         seeds (default: 1 2 3 4 5 6 7 8 9 10)
+  --total-timesteps N       steps per run (default: each script's default, 1000000)
+  --workers N               runs at a time here, one torch thread each (default: number of cores, $(nproc))
+  --checkpoint-frequency N  checkpoint every N steps, so an interrupted run resumes (default: 10000)
+  --dry-run                 print the commands (or the Slurm job script) and run nothing
+  --slurm                   submit the sweep as one Slurm job array, one run per array task
+  --slurm-partition P       sbatch --partition
+  --slurm-time T            sbatch --time (e.g. 2-00:00:00)
+  --slurm-cpus-per-task N   sbatch --cpus-per-task (default: 1)
+  --slurm-extra LINE        an extra '#SBATCH LINE' (repeatable), e.g. --slurm-extra '--mem=8G'
+  -h, --help                this help
+
+Runs are named {env}__{algo}__{seed}__{steps}[__{extra flags}] ('/' in the env id written '-'):
+TensorBoard logs go to runs/{name}/, each run's output to logs/{name}.log. A finished run is marked
+runs/{name}/DONE and skipped next time; an unfinished one resumes from runs/{name}/checkpoint.pt, or
+starts again if it had none. One failing run doesn't stop the others; the summary lists failures
+and the exit status is non-zero if any run failed.
+
+Example: bash benchmark.sh --algos td3 oparl --env-ids dm_control/cartpole-balance-v0 --seeds 1 2 \\
+           --workers 2 --total-timesteps 2000 -- --learning-starts 1000
+EOF
+}
+
+die() { echo "error: $*" >&2; exit 2; }
+
+# The name of a run: every input that changes its result.
+run_name() {  # algo env seed total extra...
+  local algo=$1 env=$2 seed=$3 total=$4; shift 4
+  local name="${env//\//-}__${algo}__${seed}__${total}"
+  if (($#)); then
+    local extra="$*"
+    extra="${extra//--/}"
+    extra="${extra// /_}"
+    extra="${extra//[^A-Za-z0-9_.=-]/-}"
+    if ((${#extra} > 120)); then extra="$(printf '%s' "$*" | sha1sum | cut -c1-12)"; fi
+    name="${name}__${extra}"
+  fi
+  printf '%s' "$name"
+}
+
+# One run, skipped if finished, resumed if it has a checkpoint. Prints one word: done, skipped, failed.
+run_one() {  # algo env seed total checkpoint_frequency [-- extra...]
+  local algo=$1 env=$2 seed=$3 total=$4 ckpt=$5; shift 5
+  [[ ${1:-} == "--" ]] && shift
+  local name dir log
+  name="$(run_name "$algo" "$env" "$seed" "$total" "$@")"
+  dir="runs/$name" log="logs/$name.log"
+  if [[ -f $dir/DONE ]]; then echo skipped; return 0; fi
+  mkdir -p logs
+  local resume=()
+  if [[ -f $dir/checkpoint.pt ]]; then
+    resume=(--resume "$dir")
+  else
+    rm -rf "$dir"  # a run that died before its first checkpoint starts again
+  fi
+  local steps=()
+  [[ $total != default ]] && steps=(--total-timesteps "$total")
+  if OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 "${PYTHON:-python}" "$REPO/${algo}_continuous_action.py" \
+      --env-id "$env" --seed "$seed" "${steps[@]}" --run-name "$name" --checkpoint-frequency "$ckpt" "$@" "${resume[@]}" \
+      >>"$log" 2>&1; then
+    touch "$dir/DONE"
+    echo done
+  else
+    echo failed
+  fi
+}
+
+if [[ ${1:-} == "--run-one" ]]; then  # one run of a sweep: what each worker or Slurm array task executes
+  shift
+  run_one "$@"
+  exit 0
+fi
+
+algos=(oparl td3 sac)
+env_ids=("${PAPER_DMC[@]}")
+seeds=(1 2 3 4 5 6 7 8 9 10)
+total=default
+workers=$(nproc)
+checkpoint_frequency=10000
+dry_run=0
+slurm=0
+slurm_partition="" slurm_time="" slurm_cpus=1
+slurm_extra=()
+extra=()
+
+values() {  # the values after a multi-value flag, up to the next flag
+  local -n out=$1; shift
+  out=()
+  while (($#)) && [[ $1 != -* ]]; do out+=("$1"); shift; done
+  ((${#out[@]})) || die "$flag needs at least one value"
+}
+count_values() { local n=0; while (($#)) && [[ $1 != -* ]]; do n=$((n + 1)); shift; done; echo "$n"; }
+need_int() { [[ $2 =~ ^[0-9]+$ ]] && (($2 > 0)) || die "$1 must be a positive integer, got '$2'"; }
+
+while (($#)); do
+  flag=$1
+  case $flag in
+    -h | --help) usage; exit 0 ;;
+    --algos) shift; values algos "$@"; shift $(count_values "$@") ;;
+    --env-ids) shift; values env_ids "$@"; shift $(count_values "$@") ;;
+    --seeds) shift; values seeds "$@"; shift $(count_values "$@") ;;
+    --suite)
+      case ${2:-} in
+        dmc) env_ids=("${PAPER_DMC[@]}") ;;
+        mujoco) env_ids=("${PAPER_MUJOCO[@]}") ;;
+        *) die "--suite takes dmc or mujoco, got '${2:-}'" ;;
+      esac
+      shift 2 ;;
+    --total-timesteps) need_int "$flag" "${2:-}"; total=$2; shift 2 ;;
+    --workers) need_int "$flag" "${2:-}"; workers=$2; shift 2 ;;
+    --checkpoint-frequency) need_int "$flag" "${2:-}"; checkpoint_frequency=$2; shift 2 ;;
+    --dry-run) dry_run=1; shift ;;
+    --slurm) slurm=1; shift ;;
+    --slurm-partition) slurm_partition=${2:?--slurm-partition needs a value}; shift 2 ;;
+    --slurm-time) slurm_time=${2:?--slurm-time needs a value}; shift 2 ;;
+    --slurm-cpus-per-task) need_int "$flag" "${2:-}"; slurm_cpus=$2; shift 2 ;;
+    --slurm-extra) slurm_extra+=("${2:?--slurm-extra needs a value}"); shift 2 ;;
+    --) shift; extra=("$@"); break ;;
+    *) die "unknown flag '$flag' (see --help)" ;;
+  esac
+done
+
+for algo in "${algos[@]}"; do
+  [[ -f $REPO/${algo}_continuous_action.py ]] || die "unknown algorithm '$algo': no $REPO/${algo}_continuous_action.py"
+done
+for seed in "${seeds[@]}"; do [[ $seed =~ ^[0-9]+$ ]] || die "seeds must be non-negative integers, got '$seed'"; done
+
+PYTHON="$(command -v "${PYTHON:-python}")" || die "no python on PATH (activate the virtual environment first)"
+export PYTHON
+
+# one line per run: the arguments of run_one
+runs=()
+for env in "${env_ids[@]}"; do
+  for seed in "${seeds[@]}"; do
+    for algo in "${algos[@]}"; do
+      runs+=("$(printf '%q ' "$algo" "$env" "$seed" "$total" "$checkpoint_frequency" -- "${extra[@]}")")
+    done
+  done
+done
+n=${#runs[@]}
+
+if ((slurm)); then
+  sweep_dir="slurm/$(date +%Y%m%d-%H%M%S)-$$"
+  script="#!/usr/bin/env bash
+#SBATCH --job-name=oparl-sweep
+#SBATCH --array=0-$((n - 1))
+#SBATCH --cpus-per-task=$slurm_cpus
+#SBATCH --output=$PWD/logs/slurm-%A_%a.out"
+  [[ -n $slurm_partition ]] && script+=$'\n'"#SBATCH --partition=$slurm_partition"
+  [[ -n $slurm_time ]] && script+=$'\n'"#SBATCH --time=$slurm_time"
+  for line in "${slurm_extra[@]}"; do script+=$'\n'"#SBATCH $line"; done
+  script+="
+cd $(printf '%q' "$PWD")
+export PYTHON=$(printf '%q' "$PYTHON")
+args=\$(sed -n \"\$((SLURM_ARRAY_TASK_ID + 1))p\" $(printf '%q' "$PWD/$sweep_dir/runs.txt"))
+eval \"bash $(printf '%q' "$REPO/benchmark.sh") --run-one \$args\""
+  if ((dry_run)); then
+    echo "$script"
+    printf '%s\n' "${runs[@]}" | sed 's/^/# run: /'
+    exit 0
+  fi
+  mkdir -p "$sweep_dir" logs
+  printf '%s\n' "${runs[@]}" >"$sweep_dir/runs.txt"
+  echo "$script" >"$sweep_dir/job.sh"
+  sbatch "$sweep_dir/job.sh" || die "sbatch failed"
+  echo "submitted $n runs as one array job ($sweep_dir/job.sh); each run's output: logs/<run name>.log"
+  exit 0
+fi
+
+if ((dry_run)); then
+  for args in "${runs[@]}"; do echo "bash $REPO/benchmark.sh --run-one $args"; done
+  exit 0
+fi
+
+mkdir -p logs
+status_dir="$(mktemp -d)"
+trap 'rm -rf "$status_dir"' EXIT
+started=0
+last_progress=""
+progress() {  # prints when the counts changed
+  local finished line
+  finished=$(find "$status_dir" -name '*.status' | wc -l)
+  line="runs: $finished finished, $((started - finished)) running, $((n - started)) left"
+  [[ $line == "$last_progress" ]] || echo "[$(date +%H:%M:%S)] $line"
+  last_progress=$line
+}
+for i in "${!runs[@]}"; do
+  while (($(jobs -rp | wc -l) >= workers)); do wait -n; progress; done
+  (result=$(eval "run_one ${runs[$i]}"); echo "$result" >"$status_dir/$i.status") &
+  started=$((started + 1))
+  progress
+done
+while (($(jobs -rp | wc -l) > 0)); do wait -n; progress; done
+
+done_runs=() skipped_runs=() failed_runs=()
+for i in "${!runs[@]}"; do
+  eval "set -- ${runs[$i]}"
+  name="$(run_name "$1" "$2" "$3" "$4" "${@:7}")"
+  case "$(cat "$status_dir/$i.status")" in
+    done) done_runs+=("$name") ;;
+    skipped) skipped_runs+=("$name") ;;
+    *) failed_runs+=("$name") ;;
+  esac
+done
+echo "summary: ${#done_runs[@]} done, ${#skipped_runs[@]} skipped (finished before), ${#failed_runs[@]} failed"
+for name in "${failed_runs[@]}"; do echo "  failed: $name (log: logs/$name.log)"; done
+((${#failed_runs[@]} == 0))

@@ -1,0 +1,352 @@
+"""Turn runs into the paper's figures and table.
+
+    python plot_results.py runs --out results                      # TensorBoard logs under runs/
+    python plot_results.py results/eval_series.csv --out results   # or the CSV this script writes
+
+Writes into --out:
+  {prefix}curves.png        eval/episodic_return per env, one line per algorithm: mean over seeds of
+                            each run's curve smoothed over 10 evaluations, shaded +- half a std (the
+                            paper's Figure 2 style)
+  {prefix}table.md          mean +- std of the final evaluation per algorithm and env (best in bold), an
+                            average row, OPARL's improvement over each baseline, the IQM with its 95% CI,
+                            and (unless --no-paper) the paper's Table 1 numbers beside ours
+  {prefix}iqm.png           interquartile mean of normalised scores (DMC return / 1000) over all runs of
+                            all DMC tasks, with 95% stratified bootstrap confidence intervals
+                            ("Deep RL at the edge of the statistical precipice", Agarwal et al. 2021)
+  {prefix}final_returns.csv one row per run: algo, env_id, seed, steps, final_return
+  {prefix}eval_series.csv   every evaluation of every run: algo, env_id, seed, step, episodic_return
+
+An algorithm is named by its script (exp_name without `_continuous_action`); runs of one script with
+different hyperparameters (an ablation) get the differing flags appended, e.g. `oparl (q_num=2)`.
+"""
+import argparse
+import csv
+import os
+import sys
+from collections import defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+
+TAG = "eval/episodic_return"
+PAPER_TABLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paper", "paper_table1.csv")
+# hyperparameters that do not change what a run learns, or that identify it rather than its algorithm
+NOT_ALGORITHM = {"seed", "env_id", "exp_name", "run_name", "resume", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda", "torch_deterministic"}
+SMOOTHING = 10  # evaluations
+BOOTSTRAP_REPS = 2000
+
+
+def fail(message: str):
+    raise SystemExit(f"error: {message}")
+
+
+def warn(message: str):
+    print(f"warning: {message}", file=sys.stderr)
+
+
+@dataclass
+class Run:
+    algo: str
+    env_id: str
+    seed: int
+    steps: np.ndarray
+    returns: np.ndarray
+    source: str
+
+
+def parse_hyperparameters(text: str) -> dict:
+    """The `|param|value|` table the scripts write as TensorBoard text."""
+    params = {}
+    for line in text.splitlines()[2:]:
+        cells = line.strip().strip("|").split("|")
+        if len(cells) == 2:
+            params[cells[0]] = cells[1]
+    return params
+
+
+def algorithm_names(configs: list) -> list:
+    """Short names for runs' configs: the script's name, plus the flags that tell its variants apart."""
+    by_script = defaultdict(set)
+    for exp_name, config in configs:
+        by_script[exp_name].add(config)
+    names = []
+    for exp_name, config in configs:
+        base = exp_name.removesuffix("_continuous_action")
+        variants = by_script[exp_name]
+        if len(variants) == 1:
+            names.append(base)
+            continue
+        differing = sorted({k for c in variants for k, v in c if any(dict(other).get(k) != v for other in variants)})
+        names.append(f"{base} ({', '.join(f'{k}={dict(config).get(k)}' for k in differing)})")
+    return names
+
+
+def read_tensorboard(root: str) -> list:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    if not os.path.isdir(root):
+        fail(f"{root}: no such folder (give a folder of TensorBoard runs, e.g. runs, or an eval_series.csv)")
+    run_dirs = sorted(d for d, _, files in os.walk(root) if any(f.startswith("events.out.tfevents") for f in files))
+    if not run_dirs:
+        fail(f"{root} holds no TensorBoard runs (no events.out.tfevents.* files below it)")
+    found, configs, without_eval = [], [], []
+    for run_dir in run_dirs:
+        acc = EventAccumulator(run_dir, size_guidance={"scalars": 0, "tensors": 0})
+        acc.Reload()
+        if TAG not in acc.Tags()["scalars"] or "hyperparameters/text_summary" not in acc.Tags()["tensors"]:
+            without_eval.append(run_dir)
+            continue
+        params = parse_hyperparameters(acc.Tensors("hyperparameters/text_summary")[0].tensor_proto.string_val[0].decode())
+        events = acc.Scalars(TAG)
+        found.append((params, np.array([e.step for e in events]), np.array([e.value for e in events]), run_dir))
+        configs.append((params["exp_name"], tuple(sorted((k, v) for k, v in params.items() if k not in NOT_ALGORITHM))))
+    if without_eval:
+        warn(f"{len(without_eval)} run(s) have no {TAG} and are left out: {', '.join(without_eval)}")
+    if not found:
+        fail(f"no run under {root} logged {TAG}")
+    names = algorithm_names(configs)
+    return [Run(name, p["env_id"], int(p["seed"]), steps, returns, d) for name, (p, steps, returns, d) in zip(names, found)]
+
+
+def read_csv(path: str) -> list:
+    series = defaultdict(list)
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        missing = {"algo", "env_id", "seed", "step", "episodic_return"} - set(reader.fieldnames or [])
+        if missing:
+            fail(f"{path} lacks the column(s) {', '.join(sorted(missing))} (expected the eval_series.csv this script writes)")
+        for row in reader:
+            series[(row["algo"], row["env_id"], int(row["seed"]))].append((int(row["step"]), float(row["episodic_return"])))
+    if not series:
+        fail(f"{path} holds no evaluations")
+    runs = []
+    for (algo, env_id, seed), points in series.items():
+        points.sort()
+        runs.append(Run(algo, env_id, seed, np.array([s for s, _ in points]), np.array([r for _, r in points]), path))
+    return runs
+
+
+def iqm(scores) -> float:
+    """Interquartile mean: the mean of the middle 50% (as scipy.stats.trim_mean(x, 0.25))."""
+    x = np.sort(np.ravel(scores))
+    cut = int(0.25 * len(x))
+    return float(x[cut : len(x) - cut].mean())
+
+
+def stratified_bootstrap_ci(scores_by_task: list, reps: int = BOOTSTRAP_REPS, seed: int = 0, confidence: float = 0.95):
+    """Percentile interval of the IQM when each task's runs are resampled with replacement."""
+    rng = np.random.default_rng(seed)
+    stats = [iqm(np.concatenate([s[rng.integers(0, len(s), len(s))] for s in scores_by_task])) for _ in range(reps)]
+    tail = 100 * (1 - confidence) / 2
+    low, high = np.percentile(stats, [tail, 100 - tail])
+    return float(low), float(high)
+
+
+def smooth(values: np.ndarray, window: int = SMOOTHING) -> np.ndarray:
+    """Trailing moving average; the first points average what there is."""
+    sums = np.cumsum(np.insert(values, 0, 0.0))
+    idx = np.arange(1, len(values) + 1)
+    return (sums[idx] - sums[np.maximum(idx - window, 0)]) / np.minimum(idx, window)
+
+
+def algo_order(algos) -> list:
+    return sorted(algos, key=lambda a: (not a.startswith("oparl"), a != "oparl", a))
+
+
+def complete_runs(runs: list) -> dict:
+    """{(algo, env): [runs]} holding the runs that reached their group's last evaluation step; warns about the others."""
+    groups = defaultdict(list)
+    for run in runs:
+        groups[(run.algo, run.env_id)].append(run)
+    complete = {}
+    for key, group in groups.items():
+        last = max(r.steps[-1] for r in group)
+        short = [r for r in group if r.steps[-1] < last]
+        if short:
+            cut = ", ".join(f"seed {r.seed} (at {r.steps[-1]})" for r in sorted(short, key=lambda r: r.seed))
+            warn(f"{key[0]} on {key[1]}: run(s) cut short before step {last}, left out of the table and IQM: {cut}")
+        complete[key] = [r for r in group if r.steps[-1] == last]
+    return complete
+
+
+def plot_curves(runs: list, path: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    envs = sorted({r.env_id for r in runs})
+    algos = algo_order({r.algo for r in runs})
+    cols = min(3, len(envs))
+    rows = -(-len(envs) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
+    colors = {a: f"C{i}" for i, a in enumerate(algos)}
+    for ax, env in zip(axes.flat, envs):
+        for algo in algos:
+            group = [r for r in runs if r.env_id == env and r.algo == algo]
+            if not group:
+                continue
+            steps = np.unique(np.concatenate([r.steps for r in group]))
+            curves = np.full((len(group), len(steps)), np.nan)
+            for i, r in enumerate(group):  # each run on the common grid; NaN where a run stopped early
+                curves[i, np.searchsorted(steps, r.steps)] = smooth(r.returns)
+            mean, std = np.nanmean(curves, 0), np.nanstd(curves, 0)
+            ax.plot(steps, mean, color=colors[algo], label=f"{algo} ({len(group)} seeds)")
+            ax.fill_between(steps, mean - std / 2, mean + std / 2, color=colors[algo], alpha=0.2)
+        ax.set_title(env.removeprefix("dm_control/"))
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("evaluation return")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    for ax in list(axes.flat)[len(envs) :]:
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def normalised_scores(complete: dict, algo: str) -> list:
+    """Per DMC task, the final returns / 1000 of `algo`'s runs."""
+    return [np.array([r.returns[-1] for r in group]) / 1000.0 for (a, env), group in sorted(complete.items()) if a == algo and env.startswith("dm_control/")]
+
+
+def aggregate(complete: dict, algos: list) -> dict:
+    result = {}
+    for algo in algos:
+        scores = normalised_scores(complete, algo)
+        if scores:
+            result[algo] = (iqm(np.concatenate(scores)), *stratified_bootstrap_ci(scores), len(scores), sum(len(s) for s in scores))
+    return result
+
+
+def plot_iqm(stats: dict, path: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    algos = algo_order(stats)
+    fig, ax = plt.subplots(figsize=(6, 0.6 * len(algos) + 1.2))
+    for i, algo in enumerate(algos):
+        value, low, high = stats[algo][:3]
+        ax.plot([low, high], [i, i], color=f"C{i}", linewidth=6, alpha=0.5, solid_capstyle="butt")
+        ax.plot([value], [i], "|", color="black", markersize=16)
+    ax.set_yticks(range(len(algos)), [f"{a}\n{stats[a][4]} runs, {stats[a][3]} tasks" for a in algos])
+    ax.set_ylim(len(algos) - 0.5, -0.5)
+    ax.set_xlabel("IQM of normalised score (DMC return / 1000)\nline: 95% stratified bootstrap confidence interval")
+    ax.grid(axis="x", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def read_paper_table(path: str) -> dict:
+    with open(path, newline="") as f:
+        return {row["env_id"]: row for row in csv.DictReader(f)}
+
+
+def write_table(complete: dict, stats: dict, paper: dict, path: str):
+    algos = algo_order({a for a, _ in complete})
+    envs = sorted({e for _, e in complete})
+    cell = {key: np.array([r.returns[-1] for r in group]) for key, group in complete.items() if group}
+    steps = {key: int(group[0].steps[-1]) for key, group in complete.items() if group}
+    budgets = sorted(set(steps.values()))
+    paper_algos = [a for a in ("oparl", "redq", "sac", "td3") if paper and any(f"{a}_mean" in row for row in paper.values())]
+    lines = [f"Final evaluation return (mean +- std over seeds; seeds per cell in parentheses) at {' / '.join(map(str, budgets))} steps."]
+    if paper:
+        lines.append("Columns marked *paper* are the paper's Table 1 (1M steps, 10 seeds), copied for reference: a different budget.")
+    lines.append("")
+    header = ["task", *algos, *(f"{a} *paper*" for a in paper_algos)]
+    lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for env in envs:
+        means = {a: cell[(a, env)].mean() for a in algos if (a, env) in cell}
+        best = max(means.values()) if means else None
+        row = [env.removeprefix("dm_control/")]
+        for a in algos:
+            if (a, env) not in cell:
+                row.append("")
+                continue
+            text = f"{means[a]:.1f} +- {cell[(a, env)].std():.1f} ({len(cell[(a, env)])})"
+            if len(budgets) > 1:
+                text += f" at {steps[(a, env)]}"
+            row.append(f"**{text}**" if means[a] == best and len(means) > 1 else text)
+        for a in paper_algos:
+            p = paper.get(env, {})
+            row.append(f"{float(p[f'{a}_mean']):.1f} +- {float(p[f'{a}_std']):.1f}" if p.get(f"{a}_mean") else "")
+        lines.append("| " + " | ".join(row) + " |")
+    shared = [e for e in envs if all((a, e) in cell for a in algos)]
+    averages = {a: np.mean([cell[(a, e)].mean() for e in shared]) for a in algos} if shared else {}
+    if averages:
+        row = [f"average ({len(shared)} tasks)"] + [f"{averages[a]:.1f}" for a in algos]
+        for a in paper_algos:
+            values = [float(paper[e][f"{a}_mean"]) for e in shared if e in paper]
+            row.append(f"{np.mean(values):.1f}" if len(values) == len(shared) else "")
+        lines.append("| " + " | ".join(row) + " |")
+    if "oparl" in averages:
+        lines.append("")
+        for a in algos:
+            if a != "oparl":
+                lines.append(f"- OPARL vs {a}: {100 * (averages['oparl'] / averages[a] - 1):+.1f}% on the average row")
+    if stats:
+        lines += ["", "Interquartile mean of normalised scores (DMC return / 1000) over all runs of all DMC tasks, 95% stratified bootstrap CI:", ""]
+        lines += ["| algorithm | IQM | 95% CI | tasks | runs |", "|---|---|---|---|---|"]
+        for a in algo_order(stats):
+            value, low, high, tasks, runs = stats[a]
+            lines.append(f"| {a} | {value:.3f} | [{low:.3f}, {high:.3f}] | {tasks} | {runs} |")
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+def write_csvs(runs: list, series_path: str, final_path: str):
+    runs = sorted(runs, key=lambda r: (r.algo, r.env_id, r.seed))
+    with open(series_path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["algo", "env_id", "seed", "step", "episodic_return"])
+        for r in runs:
+            writer.writerows((r.algo, r.env_id, r.seed, int(s), f"{v:.4f}") for s, v in zip(r.steps, r.returns))
+    with open(final_path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["algo", "env_id", "seed", "steps", "final_return"])
+        writer.writerows((r.algo, r.env_id, r.seed, int(r.steps[-1]), f"{r.returns[-1]:.4f}") for r in runs)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("source", help="a folder of TensorBoard runs (e.g. runs) or an eval_series.csv written by this script")
+    parser.add_argument("--out", default="results", help="output folder")
+    parser.add_argument("--prefix", default="", help="prefix of every output file name, e.g. ablation_")
+    parser.add_argument("--algos", nargs="+", help="only these algorithms (names as in the table)")
+    parser.add_argument("--env-ids", nargs="+", help="only these environments")
+    parser.add_argument("--paper-table", default=PAPER_TABLE, help="the paper's Table 1 as CSV (default: paper/paper_table1.csv)")
+    parser.add_argument("--no-paper", action="store_true", help="leave out the paper's numbers")
+    args = parser.parse_args(argv)
+
+    if os.path.isfile(args.source) and args.source.endswith(".csv"):
+        runs = read_csv(args.source)
+    else:
+        runs = read_tensorboard(args.source)
+    for name, wanted, key in [("--algos", args.algos, "algo"), ("--env-ids", args.env_ids, "env_id")]:
+        if wanted:
+            unknown = set(wanted) - {getattr(r, key) for r in runs}
+            if unknown:
+                fail(f"{name}: {', '.join(sorted(unknown))} not found; the runs have {', '.join(sorted({getattr(r, key) for r in runs}))}")
+            runs = [r for r in runs if getattr(r, key) in wanted]
+    paper = {} if args.no_paper or not os.path.isfile(args.paper_table) else read_paper_table(args.paper_table)
+
+    os.makedirs(args.out, exist_ok=True)
+    out = lambda name: os.path.join(args.out, args.prefix + name)  # noqa: E731
+    complete = complete_runs(runs)
+    stats = aggregate(complete, algo_order({a for a, _ in complete}))
+    plot_curves(runs, out("curves.png"))
+    write_table(complete, stats, paper, out("table.md"))
+    if stats:
+        plot_iqm(stats, out("iqm.png"))
+    else:
+        print("no DMC task among the runs: no IQM plot (scores are normalised as DMC return / 1000)")
+    write_csvs(runs, out("eval_series.csv"), out("final_returns.csv"))
+    written = ["curves.png", "table.md", *(["iqm.png"] if stats else []), "eval_series.csv", "final_returns.csv"]
+    print(f"{len(runs)} runs of {len({r.algo for r in runs})} algorithm(s) on {len({r.env_id for r in runs})} env(s) -> {', '.join(out(w) for w in written)}")
+
+
+if __name__ == "__main__":
+    main()

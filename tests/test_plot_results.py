@@ -1,0 +1,161 @@
+"""plot_results.py on synthetic TensorBoard logs with known values."""
+import os
+
+import numpy as np
+import pytest
+from torch.utils.tensorboard import SummaryWriter
+
+import plot_results as pr
+
+DMC_A, DMC_B = "dm_control/cartpole-swingup-v0", "dm_control/walker-walk-v0"
+
+
+def write_run(root, exp_name, env_id, seed, returns, every=5000, **params):
+    """A run folder as the scripts write it: the hyperparameter table and eval/episodic_return."""
+    run_dir = os.path.join(root, f"{env_id.replace('/', '-')}__{exp_name}__{seed}__{'_'.join(f'{k}{v}' for k, v in params.items())}")
+    writer = SummaryWriter(run_dir)
+    table = {"exp_name": exp_name, "seed": seed, "env_id": env_id, "run_name": os.path.basename(run_dir), "gamma": 0.99, **params}
+    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in table.items()))
+    for i, value in enumerate(returns):
+        writer.add_scalar("eval/episodic_return", value, i * every)
+    writer.close()
+    return run_dir
+
+
+@pytest.fixture
+def sweep(tmp_path):
+    root = str(tmp_path / "runs")
+    # final returns: oparl [100, 200, 300] on A, td3 [50, 50, 50] on A; on B oparl [900, 900, 900], td3 [600, 700, 800]
+    for seed, (oa, ta, ob, tb) in enumerate([(100, 50, 900, 600), (200, 50, 900, 700), (300, 50, 900, 800)], start=1):
+        write_run(root, "oparl_continuous_action", DMC_A, seed, [0, 10, oa])
+        write_run(root, "td3_continuous_action", DMC_A, seed, [0, 20, ta])
+        write_run(root, "oparl_continuous_action", DMC_B, seed, [0, 30, ob])
+        write_run(root, "td3_continuous_action", DMC_B, seed, [0, 40, tb])
+    return root
+
+
+def test_table_has_mean_std_best_average_and_improvement(sweep, tmp_path):
+    out = str(tmp_path / "out")
+    pr.main([sweep, "--out", out, "--no-paper"])
+    table = open(os.path.join(out, "table.md")).read()
+    assert "| cartpole-swingup-v0 | **200.0 +- 81.6 (3)** | 50.0 +- 0.0 (3) |" in table
+    assert "| walker-walk-v0 | **900.0 +- 0.0 (3)** | 700.0 +- 81.6 (3) |" in table
+    assert "| average (2 tasks) | 550.0 | 375.0 |" in table
+    assert "OPARL vs td3: +46.7% on the average row" in table
+    for name in ("curves.png", "iqm.png", "eval_series.csv", "final_returns.csv"):
+        assert os.path.getsize(os.path.join(out, name)) > 0
+
+
+def test_final_returns_csv_has_one_row_per_run(sweep, tmp_path):
+    out = str(tmp_path / "out")
+    pr.main([sweep, "--out", out, "--no-paper"])
+    rows = open(os.path.join(out, "final_returns.csv")).read().splitlines()
+    assert rows[0] == "algo,env_id,seed,steps,final_return" and len(rows) == 13
+    assert "oparl,dm_control/cartpole-swingup-v0,3,10000,300.0000" in rows
+
+
+def test_the_csv_alone_regenerates_every_file(sweep, tmp_path):
+    first, second = str(tmp_path / "first"), str(tmp_path / "second")
+    pr.main([sweep, "--out", first])
+    pr.main([os.path.join(first, "eval_series.csv"), "--out", second])
+    for name in ("table.md", "eval_series.csv", "final_returns.csv"):
+        assert open(os.path.join(first, name)).read() == open(os.path.join(second, name)).read()
+
+
+def test_paper_columns_come_from_the_paper_table(sweep, tmp_path):
+    out = str(tmp_path / "out")
+    pr.main([sweep, "--out", out])
+    table = open(os.path.join(out, "table.md")).read()
+    assert "oparl *paper*" in table and "874.6 +- 7.5" in table and "975.3 +- 2.9" in table
+    assert "the paper's Table 1" in table
+
+
+def test_iqm_is_the_mean_of_the_middle_half():
+    assert pr.iqm([0.1, 0.2, 0.3, 0.4]) == pytest.approx(0.25)
+    assert pr.iqm([5.0, 0.0, 1.0, 2.0, 3.0, 4.0, 100.0, -50.0]) == pytest.approx(2.5)  # middle four: 1, 2, 3, 4
+    assert pr.iqm([1.0, 2.0, 3.0, 4.0, 5.0]) == pytest.approx(3.0)  # one cut from each end
+
+
+def test_bootstrap_ci_of_two_runs_spans_both_by_hand():
+    # one task, runs [0, 1]: resamples {0,0}, {0,1}, {1,0}, {1,1} -> IQM 0, .5, .5, 1 with probability 1/4 each
+    low, high = pr.stratified_bootstrap_ci([np.array([0.0, 1.0])], reps=4000)
+    assert (low, high) == (0.0, 1.0)
+    low, high = pr.stratified_bootstrap_ci([np.array([0.0, 1.0])], reps=4000, confidence=0.4)
+    assert (low, high) == (0.5, 0.5)
+
+
+def test_bootstrap_is_stratified_by_task():
+    # within each task the runs agree, so resampling within tasks never changes the pooled scores
+    scores = [np.full(3, 0.2), np.full(3, 0.8), np.full(3, 0.5)]
+    assert pr.stratified_bootstrap_ci(scores) == (pr.iqm(np.concatenate(scores)),) * 2
+
+
+def test_iqm_rows_in_the_table(sweep, tmp_path):
+    out = str(tmp_path / "out")
+    pr.main([sweep, "--out", out, "--no-paper"])
+    table = open(os.path.join(out, "table.md")).read()
+    # oparl scores: .1 .2 .3 .9 .9 .9 -> middle half .3 .9 .9 (int(0.25*6) = 1 cut each end: .2 .3 .9 .9)
+    assert f"| oparl | {np.mean([0.2, 0.3, 0.9, 0.9]):.3f} |" in table
+
+
+def test_smoothing_is_a_trailing_window():
+    np.testing.assert_allclose(pr.smooth(np.array([1.0, 2.0, 3.0, 4.0]), window=2), [1.0, 1.5, 2.5, 3.5])
+    np.testing.assert_allclose(pr.smooth(np.arange(12.0))[-1], np.mean(np.arange(2.0, 12.0)))
+
+
+def test_variants_of_one_script_are_told_apart(tmp_path):
+    root = str(tmp_path / "runs")
+    for seed in (1, 2):
+        write_run(root, "oparl_continuous_action", DMC_A, seed, [0, 100], q_num=5)
+        write_run(root, "oparl_continuous_action", DMC_A, seed, [0, 50], q_num=2)
+    runs = pr.read_tensorboard(root)
+    assert sorted({r.algo for r in runs}) == ["oparl (q_num=2)", "oparl (q_num=5)"]
+
+
+def test_cut_short_runs_are_named_and_left_out_of_the_table(tmp_path, capsys):
+    root = str(tmp_path / "runs")
+    write_run(root, "td3_continuous_action", DMC_A, 1, [0, 10, 30])
+    write_run(root, "td3_continuous_action", DMC_A, 2, [0, 20, 50])
+    write_run(root, "td3_continuous_action", DMC_A, 3, [0, 15])
+    out = str(tmp_path / "out")
+    pr.main([root, "--out", out, "--no-paper"])
+    err = capsys.readouterr().err
+    assert "cut short before step 10000" in err and "seed 3 (at 5000)" in err
+    table = open(os.path.join(out, "table.md")).read()
+    assert "40.0 +- 10.0 (2)" in table
+
+
+@pytest.mark.parametrize(
+    "setup, message",
+    [
+        (lambda root: None, "no such folder"),
+        (lambda root: os.makedirs(root), "holds no TensorBoard runs"),
+    ],
+)
+def test_missing_or_empty_runs_folder(setup, message, tmp_path):
+    root = str(tmp_path / "runs")
+    setup(root)
+    with pytest.raises(SystemExit, match=message):
+        pr.main([root, "--out", str(tmp_path / "out")])
+
+
+def test_runs_without_evaluations_are_reported(tmp_path, capsys):
+    root = str(tmp_path / "runs")
+    writer = SummaryWriter(os.path.join(root, "no_eval"))
+    writer.add_scalar("charts/SPS", 100.0, 0)
+    writer.close()
+    with pytest.raises(SystemExit, match="no run under .* logged eval/episodic_return"):
+        pr.main([root, "--out", str(tmp_path / "out")])
+    assert "have no eval/episodic_return and are left out" in capsys.readouterr().err
+
+
+def test_foreign_csv_is_refused(tmp_path):
+    path = tmp_path / "x.csv"
+    path.write_text("a,b\n1,2\n")
+    with pytest.raises(SystemExit, match="lacks the column"):
+        pr.main([str(path), "--out", str(tmp_path / "out")])
+
+
+def test_filters_name_what_exists(sweep, tmp_path):
+    with pytest.raises(SystemExit, match="--algos: redq not found; the runs have oparl, td3"):
+        pr.main([sweep, "--out", str(tmp_path / "out"), "--algos", "redq"])

@@ -1,0 +1,101 @@
+"""Training steps per second of whole scripts, start-up cost removed.
+
+Each entry is timed as the difference between a run of L steps (all random: start-up, environment
+creation, the random phase) and a run of L + T steps (the same plus T training steps), so the
+figure is T / (time(L + T) - time(L)). Entries are alternated within every repeat, after one
+untimed warm-up run each, and the median over repeats is reported.
+
+An entry is one of our scripts by short name (`td3`, `sac`, `oparl`), any script path, or a whole
+command prefix, each optionally followed by its own flags, e.g.
+
+    python tools/throughput.py td3 sac oparl "oparl --bf16" --env-id Hopper-v4 --threads 1
+    PYTHONPATH=../cleanrl python tools/throughput.py td3 "../cleanrl-venv/bin/python ../cleanrl/cleanrl/td3_continuous_action.py"
+
+Every entry gets `--env-id E --total-timesteps N --learning-starts L --seed 1 --no-cuda`; our own
+scripts also get a single evaluation episode at the end and a throw-away run folder.
+"""
+import argparse
+import os
+import platform
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OURS = {"td3", "sac", "oparl"}
+
+
+def command_of(entry: str) -> tuple[list, bool]:
+    """The command prefix for an entry, and whether it is one of this repository's scripts."""
+    words = shlex.split(entry)
+    if words[0] in OURS:
+        return [sys.executable, os.path.join(REPO, f"{words[0]}_continuous_action.py"), *words[1:]], True
+    if words[0].endswith(".py"):
+        return [sys.executable, *words], False
+    return words, False
+
+
+def timed_run(entry: str, env_id: str, steps: int, learning_starts: int, threads: int, workdir: str) -> float:
+    prefix, ours = command_of(entry)
+    flags = ["--env-id", env_id, "--total-timesteps", str(steps), "--learning-starts", str(learning_starts), "--seed", "1", "--no-cuda"]
+    if ours:
+        flags += ["--eval-frequency", str(10**9), "--eval-episodes", "1", "--run-name", f"throughput_{time.time_ns()}"]
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    start = time.perf_counter()
+    result = subprocess.run(prefix + flags, cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    elapsed = time.perf_counter() - start
+    if result.returncode != 0:
+        sys.exit(f"error: {entry!r} failed ({result.returncode}): {result.stderr.strip().splitlines()[-1] if result.stderr.strip() else 'no output'}")
+    return elapsed
+
+
+def cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or "unknown CPU"
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("entries", nargs="+", help="td3 | sac | oparl | path/to/script.py | 'command prefix', each with optional flags")
+    parser.add_argument("--env-id", default="Hopper-v4")
+    parser.add_argument("--learning-starts", type=int, default=1000, help="L: random steps before training")
+    parser.add_argument("--steps", type=int, default=2000, help="T: training steps timed")
+    parser.add_argument("--threads", type=int, default=1, help="torch/BLAS threads per run")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--baseline", default=None, help="the entry the ratios are relative to (default: the first)")
+    args = parser.parse_args(argv)
+    for name, value in [("--steps", args.steps), ("--repeats", args.repeats), ("--threads", args.threads), ("--learning-starts", args.learning_starts)]:
+        if value <= 0:
+            parser.error(f"{name} must be > 0, got {value}")
+    baseline = args.baseline or args.entries[0]
+    if baseline not in args.entries:
+        parser.error(f"--baseline {baseline!r} is not one of the entries {args.entries}")
+
+    sps = {entry: [] for entry in args.entries}
+    with tempfile.TemporaryDirectory() as workdir:
+        for entry in args.entries:  # warm-up: file caches, first imports
+            timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir)
+        for repeat in range(args.repeats):
+            for entry in args.entries:
+                short = timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir)
+                long = timed_run(entry, args.env_id, args.learning_starts + args.steps, args.learning_starts, args.threads, workdir)
+                sps[entry].append(args.steps / (long - short))
+                print(f"repeat {repeat + 1}/{args.repeats} {entry}: {sps[entry][-1]:.1f} steps/s", file=sys.stderr, flush=True)
+
+    reference = statistics.median(sps[baseline])
+    print(f"\n{args.env_id}, {args.threads} thread(s), {args.steps} training steps after {args.learning_starts} random ones, median of {args.repeats}; {cpu_name()}\n")
+    print(f"| entry | steps/s (median) | range | vs `{baseline}` |")
+    print("|---|---|---|---|")
+    for entry, values in sps.items():
+        median = statistics.median(values)
+        print(f"| `{entry}` | {median:.1f} | {min(values):.1f}-{max(values):.1f} | {median / reference:.2f}x |")
+
+
+if __name__ == "__main__":
+    main()
