@@ -10,7 +10,12 @@ sys.path.insert(0, REPO)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 # the algorithm scripts, by short name; every script-level test runs on each of them
-SCRIPTS = ["td3", "oparl", "sac"]
+SCRIPTS = ["td3", "oparl", "sac", "redq", "ppo"]
+OFF_POLICY = ["td3", "oparl", "sac", "redq"]  # the scripts with a replay buffer
+# what keeps each script's test runs short, beyond fewer steps
+QUICK = {"redq": {"utd_ratio": 2}, "ppo": {"num_steps": 256, "num_minibatches": 4, "update_epochs": 2}}
+# settings that only the off-policy scripts have; dropped for the others
+OFF_POLICY_ONLY = {"learning_starts", "batch_size"}
 
 
 def load(short_name: str):
@@ -22,12 +27,26 @@ def algo(request):
     return load(request.param)
 
 
+def settings(script: str, values: dict) -> dict:
+    """`values` plus the script's QUICK settings, without the off-policy ones a script lacks."""
+    fields = {f.name for f in dataclasses.fields(load(script).Args)}
+    merged = {**QUICK.get(script, {}), **values}
+    return {k: v for k, v in merged.items() if k in fields or k not in OFF_POLICY_ONLY}
+
+
 def small_args(module, **overrides):
     """Args for a short run: few steps, small evaluations."""
-    fields = {f.name for f in dataclasses.fields(module.Args)}
+    script = module.__name__.removesuffix("_continuous_action")
     defaults = dict(total_timesteps=600, learning_starts=300, batch_size=64, eval_frequency=300, eval_episodes=1)
-    defaults = {k: v for k, v in defaults.items() if k in fields}
-    return module.Args(**{**defaults, **overrides})
+    return module.Args(**settings(script, {**defaults, **overrides}))
+
+
+def cli_flags(script: str, **values) -> list:
+    """The same as command-line flags: cli_flags("td3", total_timesteps=10) -> ["--total-timesteps", "10", ...]."""
+    flags = []
+    for name, value in settings(script, values).items():
+        flags += [f"--{name.replace('_', '-')}", str(value)]
+    return flags
 
 
 def scalars(run_dir: str) -> dict:

@@ -6,21 +6,17 @@ import sys
 import pytest
 import torch
 
-from conftest import REPO, SCRIPTS, load, scalars, small_args
+from conftest import REPO, SCRIPTS, cli_flags, load, scalars, small_args
 
-COMMON_TAGS = {
-    "eval/episodic_return",
-    "charts/episodic_return",
-    "charts/episodic_length",
-    "charts/SPS",
-    "losses/qf_loss",
-    "losses/qf_values",
-}
+COMMON_TAGS = {"eval/episodic_return", "charts/episodic_return", "charts/episodic_length", "charts/SPS"}
+CRITIC_TAGS = {"losses/qf_loss", "losses/qf_values"}
 # what each script logs beyond the common tags
 EXTRA_TAGS = {
-    "td3": {"losses/actor_loss"},
-    "sac": {"losses/actor_loss", "losses/alpha", "losses/alpha_loss"},
-    "oparl": {"losses/pessimistic_actor_loss", "losses/optimistic_actor_loss", "charts/q_ensemble_std", "charts/optimistic_share", "charts/resets"},
+    "td3": CRITIC_TAGS | {"losses/actor_loss"},
+    "sac": CRITIC_TAGS | {"losses/actor_loss", "losses/alpha", "losses/alpha_loss"},
+    "redq": CRITIC_TAGS | {"losses/actor_loss", "losses/alpha", "losses/alpha_loss"},
+    "ppo": {"losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl", "losses/old_approx_kl", "losses/clipfrac", "losses/explained_variance", "charts/learning_rate"},
+    "oparl": CRITIC_TAGS | {"losses/pessimistic_actor_loss", "losses/optimistic_actor_loss", "charts/q_ensemble_std", "charts/optimistic_share", "charts/resets"},
 }
 
 
@@ -53,7 +49,7 @@ def test_save_model_writes_loadable_weights(script, tmp_path, monkeypatch):
     actor = result["actor"]
     for name, tensor in actor.state_dict().items():
         torch.testing.assert_close(saved["actor"][name], tensor)
-    assert "qf" in saved
+    assert ("normalizer" if script == "ppo" else "qf") in saved
 
 
 def run_script(script, *flags, env=None):
@@ -68,7 +64,7 @@ def run_script(script, *flags, env=None):
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_command_line_error_is_one_line_without_traceback(script, tmp_path):
-    result = run_script(script, "--env-id", "Hoper-v4", "--total-timesteps", "10")
+    result = run_script(script, "--env-id", "Hoper-v4")
     assert result.returncode != 0
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: unknown --env-id 'Hoper-v4'; did you mean Hopper-v4")
@@ -86,7 +82,7 @@ def rendering_works():
 def test_capture_video_records_evaluation_episodes(script, tmp_path):
     if not rendering_works():
         pytest.skip("no headless OpenGL here: MUJOCO_GL=egl could not render Hopper-v4 (install libegl1 / libosmesa6)")
-    flags = ["--env-id", "Hopper-v4", "--total-timesteps", "300", "--learning-starts", "300", "--eval-frequency", "300", "--eval-episodes", "2"]
+    flags = ["--env-id", "Hopper-v4", *cli_flags(script, total_timesteps=300, learning_starts=300, eval_frequency=300, eval_episodes=2)]
     result = subprocess.run(
         [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags, "--capture-video", "--run-name", "run"],
         cwd=tmp_path,

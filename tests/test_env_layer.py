@@ -3,7 +3,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from conftest import small_args
+from conftest import OFF_POLICY, load, small_args
 
 
 def test_dmc_dict_observation_is_flattened_to_float32(algo):
@@ -79,10 +79,12 @@ def test_bad_env_ids_are_rejected_with_a_hint(algo, env_id, message):
         algo.make_env(env_id, seed=0)
 
 
-def test_buffer_holds_every_transition_with_its_true_final_observation(algo, tmp_path, monkeypatch):
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_buffer_holds_every_transition_with_its_true_final_observation(script, tmp_path, monkeypatch):
     """Pendulum's episodes are cut at 200 steps: the buffer must hold the real last observation of
     each episode (no reset observation in its place) and mark the cut as not terminated."""
     monkeypatch.chdir(tmp_path)
+    algo = load(script)
     args = small_args(algo, env_id="Pendulum-v1", total_timesteps=450, learning_starts=1000, eval_frequency=450)
     rb = algo.main(args)["rb"]
     assert rb.size == 450

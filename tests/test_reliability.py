@@ -9,9 +9,11 @@ import time
 import pytest
 import torch
 
-from conftest import REPO, SCRIPTS, load, scalars
+from conftest import OFF_POLICY, REPO, SCRIPTS, cli_flags, load, scalars
 
-SHORT = ["--total-timesteps", "2500", "--learning-starts", "1000", "--batch-size", "64", "--eval-frequency", "500", "--eval-episodes", "1"]
+
+def short(script):
+    return cli_flags(script, total_timesteps=2500, learning_starts=1000, batch_size=64, eval_frequency=500, eval_episodes=1)
 
 
 def script_command(script, *flags):
@@ -27,17 +29,20 @@ def final_actor(run_dir, script):
     return torch.load(os.path.join(run_dir, f"{script}_continuous_action.cleanrl_model"), weights_only=True)["actor"]
 
 
-# OPARL is resumed on a MuJoCo and a DMC task; TD3 and SAC on one each
+# OPARL is resumed on a MuJoCo and a DMC task; the others on one each
 KILL_CASES = [
-    (script, env_id)
-    for script, env_id in [("td3", "Hopper-v4"), ("sac", "dm_control/cartpole-swingup-v0"), ("oparl", "Hopper-v4"), ("oparl", "dm_control/cartpole-swingup-v0")]
-    if script in SCRIPTS
+    ("td3", "Hopper-v4"),
+    ("sac", "dm_control/cartpole-swingup-v0"),
+    ("oparl", "Hopper-v4"),
+    ("oparl", "dm_control/cartpole-swingup-v0"),
+    ("redq", "dm_control/cartpole-swingup-v0"),
+    ("ppo", "Hopper-v4"),
 ]
 
 
 @pytest.mark.parametrize("script, env_id", KILL_CASES)
 def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, env_id, tmp_path):
-    flags = ["--env-id", env_id, *SHORT, "--save-model"]
+    flags = ["--env-id", env_id, *short(script), "--save-model"]
     full = start(script, tmp_path, *flags, "--run-name", "full")
     killed = start(script, tmp_path, *flags, "--run-name", "killed", "--checkpoint-frequency", "500")
     checkpoint = tmp_path / "runs" / "killed" / "checkpoint.pt"
@@ -55,7 +60,8 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
     full_log, resumed_log = scalars(str(tmp_path / "runs" / "full")), scalars(str(tmp_path / "runs" / "killed"))
     assert resumed_log["eval/episodic_return"] == full_log["eval/episodic_return"]
     assert [step for step, _ in resumed_log["eval/episodic_return"]] == [0, 500, 1000, 1500, 2000, 2500]
-    assert resumed_log["losses/qf_loss"] == full_log["losses/qf_loss"]  # no step logged twice or lost
+    loss = "losses/value_loss" if script == "ppo" else "losses/qf_loss"
+    assert resumed_log[loss] == full_log[loss]  # no step logged twice or lost
     full_actor, resumed_actor = final_actor(tmp_path / "runs" / "full", script), final_actor(tmp_path / "runs" / "killed", script)
     for name in full_actor:
         assert torch.equal(full_actor[name], resumed_actor[name]), name
@@ -69,7 +75,7 @@ def finished_run(tmp_path_factory):
     def get(script):
         if script not in cache:
             cwd = tmp_path_factory.mktemp(script)
-            flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "400", "--learning-starts", "200", "--batch-size", "32", "--eval-frequency", "400", "--eval-episodes", "1"]
+            flags = ["--env-id", "Pendulum-v1", *cli_flags(script, total_timesteps=400, learning_starts=200, batch_size=32, eval_frequency=400, eval_episodes=1)]
             result = subprocess.run(script_command(script, *flags, "--run-name", "done", "--checkpoint-frequency", "200"), cwd=cwd, capture_output=True, text=True, timeout=300)
             assert result.returncode == 0, result.stderr
             cache[script] = cwd
@@ -91,7 +97,10 @@ def test_checkpoint_loads_without_running_code(script, finished_run):
     path = finished_run(script) / "runs" / "done" / "checkpoint.pt"
     checkpoint = torch.load(path, weights_only=True)
     assert checkpoint["global_step"] == 400 and checkpoint["script"] == f"{script}_continuous_action.py"
-    assert checkpoint["buffer"]["rows"].shape[0] == 400
+    if script in OFF_POLICY:
+        assert checkpoint["buffer"]["rows"].shape[0] == 400
+    else:
+        assert checkpoint["rollout"]["obs"].shape[0] == 256
 
 
 def one_line_error(result):
@@ -135,8 +144,8 @@ def test_resume_with_other_hyperparameters_is_refused(script, finished_run):
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_non_finite_loss_stops_with_the_step_and_the_last_good_state(script, tmp_path):
-    flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "600", "--learning-starts", "100", "--batch-size", "32", "--eval-frequency", "600", "--eval-episodes", "1"]
-    lr_flag = "--learning-rate" if script != "sac" else "--q-lr"
+    flags = ["--env-id", "Pendulum-v1", *cli_flags(script, total_timesteps=600, learning_starts=100, batch_size=32, eval_frequency=600, eval_episodes=1)]
+    lr_flag = "--q-lr" if script in ("sac", "redq") else "--learning-rate"
     result = subprocess.run(script_command(script, *flags, lr_flag, "1e30", "--run-name", "nan"), cwd=tmp_path, capture_output=True, text=True, timeout=300)
     line = one_line_error(result)
     assert "became non-finite at step" in line and "last_good_state.pt" in line
@@ -145,16 +154,10 @@ def test_non_finite_loss_stops_with_the_step_and_the_last_good_state(script, tmp
     assert all(torch.isfinite(t).all() for net in state["nets"].values() for t in net.values())
 
 
-# (flags, part of the message); each script adds its own in EXTRA_BAD_INPUTS
+# (flags, part of the message); the off-policy scripts share OFF_POLICY_BAD_INPUTS, each adds its own
 BAD_INPUTS = [
     (["--total-timesteps", "0"], "--total-timesteps must be > 0"),
-    (["--buffer-size", "0"], "--buffer-size must be > 0"),
-    (["--batch-size", "0"], "--batch-size must be > 0"),
-    (["--learning-starts", "10"], "--learning-starts (10) must be >= --batch-size"),
     (["--gamma", "1.5"], "--gamma must be in [0, 1]"),
-    (["--tau", "0"], "--tau must be in (0, 1]"),
-    (["--tau", "1.5"], "--tau must be in (0, 1]"),
-    (["--policy-frequency", "0"], "--policy-frequency must be > 0"),
     (["--eval-frequency", "0"], "--eval-frequency must be > 0"),
     (["--eval-episodes", "0"], "--eval-episodes must be > 0"),
     (["--checkpoint-frequency", "-1"], "--checkpoint-frequency must be >= 0"),
@@ -163,8 +166,16 @@ BAD_INPUTS = [
     (["--env-id", "Hopper-v3"], "could not create --env-id 'Hopper-v3'"),
     (["--resume", "runs/missing"], "--resume runs/missing: no such run folder"),
 ]
+OFF_POLICY_BAD_INPUTS = [
+    (["--buffer-size", "0"], "--buffer-size must be > 0"),
+    (["--batch-size", "0"], "--batch-size must be > 0"),
+    (["--learning-starts", "10"], "--learning-starts (10) must be >= --batch-size"),
+    (["--tau", "0"], "--tau must be in (0, 1]"),
+    (["--tau", "1.5"], "--tau must be in (0, 1]"),
+]
 EXTRA_BAD_INPUTS = {
     "td3": [
+        (["--policy-frequency", "0"], "--policy-frequency must be > 0"),
         (["--learning-rate", "0"], "--learning-rate must be > 0"),
         (["--policy-noise", "-0.1"], "--policy-noise must be >= 0"),
         (["--noise-clip", "-1"], "--noise-clip must be >= 0"),
@@ -175,8 +186,27 @@ EXTRA_BAD_INPUTS = {
         (["--q-lr", "-1"], "--q-lr must be > 0"),
         (["--alpha", "-0.1"], "--alpha must be >= 0"),
         (["--target-network-frequency", "0"], "--target-network-frequency must be > 0"),
+        (["--policy-frequency", "0"], "--policy-frequency must be > 0"),
+    ],
+    "redq": [
+        (["--num-q", "0"], "--num-q must be >= 1"),
+        (["--num-min", "11"], "--num-min must be in [1, --num-q (10)]"),
+        (["--utd-ratio", "0"], "--utd-ratio must be >= 1"),
+        (["--policy-lr", "-1"], "--policy-lr must be > 0"),
+    ],
+    "ppo": [
+        (["--num-steps", "0"], "--num-steps must be > 0"),
+        (["--total-timesteps", "1000"], "--total-timesteps (1000) must be >= --num-steps (2048)"),
+        (["--num-minibatches", "0"], "--num-minibatches must be in [1, --num-steps (2048)]"),
+        (["--update-epochs", "0"], "--update-epochs must be > 0"),
+        (["--gae-lambda", "1.5"], "--gae-lambda must be in [0, 1]"),
+        (["--clip-coef", "0"], "--clip-coef must be > 0"),
+        (["--max-grad-norm", "0"], "--max-grad-norm must be > 0"),
+        (["--target-kl", "0"], "--target-kl must be > 0"),
+        (["--learning-rate", "0"], "--learning-rate must be > 0"),
     ],
     "oparl": [
+        (["--policy-frequency", "0"], "--policy-frequency must be > 0"),
         (["--q-num", "0"], "--q-num must be >= 1"),
         (["--optimistic-ratio", "1.5"], "--optimistic-ratio must be in [0, 1]"),
         (["--optimistic-ratio", "-0.1"], "--optimistic-ratio must be in [0, 1]"),
@@ -185,7 +215,11 @@ EXTRA_BAD_INPUTS = {
         (["--learning-rate", "-1"], "--learning-rate must be > 0"),
     ],
 }
-CASES = [(s, flags, message) for s in SCRIPTS for flags, message in BAD_INPUTS + EXTRA_BAD_INPUTS.get(s, [])]
+CASES = [
+    (s, flags, message)
+    for s in SCRIPTS
+    for flags, message in BAD_INPUTS + (OFF_POLICY_BAD_INPUTS if s in OFF_POLICY else []) + EXTRA_BAD_INPUTS.get(s, [])
+]
 
 
 @pytest.mark.parametrize("script, flags, message", CASES, ids=[f"{s}: {' '.join(f)}" for s, f, _ in CASES])

@@ -1,0 +1,63 @@
+"""REDQ's defining parts: the random-subset min target, G critic updates per step, the mean-Q actor."""
+import copy
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import redq_continuous_action as redq
+from conftest import small_args
+
+OBS_DIM, ACTION_DIM = 3, 2
+SPACE = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
+
+
+def batch_of(n):
+    return redq.Batch(torch.randn(n, OBS_DIM), torch.rand(n, ACTION_DIM), torch.randn(n, OBS_DIM), torch.randn(n), (torch.rand(n) < 0.2).float())
+
+
+def test_target_takes_the_min_over_a_fresh_random_subset_of_members():
+    torch.manual_seed(0)
+    actor, qf_target = redq.Actor(OBS_DIM, SPACE), redq.QEnsemble(OBS_DIM, ACTION_DIM, num_q=10)
+    batch, alpha, args = batch_of(64), torch.tensor(0.1), redq.Args()
+    subsets = set()
+    for _ in range(60):
+        rng = torch.get_rng_state()
+        y = redq.td_target(batch, actor, qf_target, alpha, args)
+        torch.set_rng_state(rng)  # replay the same draws by hand
+        with torch.no_grad():
+            next_actions, next_log_pi, _ = actor.get_action(batch.next_observations)
+            subset = torch.randperm(10)[:2]
+            q = qf_target(batch.next_observations, next_actions)  # all 10 members
+        subsets.add(tuple(sorted(subset.tolist())))
+        expected = batch.rewards + 0.99 * (1 - batch.terminations) * (q[subset].min(0).values - alpha * next_log_pi)
+        torch.testing.assert_close(y, expected)
+        assert not torch.allclose(y, batch.rewards + 0.99 * (1 - batch.terminations) * (q.min(0).values - alpha * next_log_pi))
+    assert len(subsets) > 25  # many of the 45 pairs appear: the subset is drawn anew each time
+
+
+def test_actor_ascends_the_mean_of_all_critics():
+    torch.manual_seed(0)
+    actor, qf = redq.Actor(OBS_DIM, SPACE), redq.QEnsemble(OBS_DIM, ACTION_DIM, num_q=10)
+    before = copy.deepcopy(actor)
+    optimizer = torch.optim.Adam(actor.parameters(), lr=1e-3)
+    batch, alpha = batch_of(128), torch.tensor(0.2)
+    rng = torch.get_rng_state()
+    loss = redq.update_actor(batch, actor, optimizer, qf, alpha)
+    torch.set_rng_state(rng)  # the same sample, from the weights the loss was computed with
+    with torch.no_grad():
+        pi, log_pi, _ = before.get_action(batch.observations)
+        q = qf(batch.observations, pi)
+    assert loss.item() == pytest.approx((alpha * log_pi - q.mean(0)).mean().item(), rel=1e-5)
+    assert loss.item() != pytest.approx((alpha * log_pi - q.min(0).values).mean().item(), rel=1e-3)
+    assert all(p.grad is None for p in qf.parameters())
+
+
+def test_utd_ratio_critic_updates_and_one_actor_update_per_step(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = redq.main(small_args(redq, env_id="Pendulum-v1", total_timesteps=330, learning_starts=300, utd_ratio=3, num_q=4, eval_frequency=330, run_name="run"))
+    critic_steps = {int(s["step"]) for s in result["q_optimizer"].state.values()}
+    actor_steps = {int(s["step"]) for s in result["actor_optimizer"].state.values()}
+    assert critic_steps == {30 * 3} and actor_steps == {30}
+    assert result["qf"].w1.shape[0] == 4
