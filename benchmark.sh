@@ -25,6 +25,8 @@ Usage: bash benchmark.sh [flags] [-- flags passed to every script]
   --total-timesteps N       steps per run (default: each script's default, 1000000)
   --workers N               runs at a time here, one torch thread each (default: number of cores, $(nproc))
   --checkpoint-frequency N  checkpoint every N steps, so an interrupted run resumes (default: 10000)
+  --skip-listed FILE        runs named in FILE (one name a line, e.g. results/finished_runs.txt) count as
+                            finished: how a sweep continues on a machine that lacks their runs/ folders
   --dry-run                 print the commands (or the Slurm job script) and run nothing
   --slurm                   submit the sweep as one Slurm job array, one run per array task
   --slurm-partition P       sbatch --partition
@@ -68,7 +70,7 @@ run_one() {  # algo env seed total checkpoint_frequency [-- extra...]
   local name dir log
   name="$(run_name "$algo" "$env" "$seed" "$total" "$@")"
   dir="runs/$name" log="logs/$name.log"
-  if [[ -f $dir/DONE ]]; then echo skipped; return 0; fi
+  if [[ -f $dir/DONE ]] || { [[ -n ${SKIP_LISTED:-} ]] && grep -qxF "$name" "$SKIP_LISTED"; }; then echo skipped; return 0; fi
   mkdir -p logs
   local resume=()
   if [[ -f $dir/checkpoint.pt ]]; then
@@ -132,6 +134,9 @@ while (($#)); do
     --total-timesteps) need_int "$flag" "${2:-}"; total=$2; shift 2 ;;
     --workers) need_int "$flag" "${2:-}"; workers=$2; shift 2 ;;
     --checkpoint-frequency) need_int "$flag" "${2:-}"; checkpoint_frequency=$2; shift 2 ;;
+    --skip-listed)
+      [[ -f ${2:-} ]] || die "--skip-listed: no such file '${2:-}'"
+      SKIP_LISTED="$(cd "$(dirname "$2")" && pwd)/$(basename "$2")"; export SKIP_LISTED; shift 2 ;;
     --dry-run) dry_run=1; shift ;;
     --slurm) slurm=1; shift ;;
     --slurm-partition) slurm_partition=${2:?--slurm-partition needs a value}; shift 2 ;;
@@ -174,7 +179,7 @@ if ((slurm)); then
   for line in "${slurm_extra[@]}"; do script+=$'\n'"#SBATCH $line"; done
   script+="
 cd $(printf '%q' "$PWD")
-export PYTHON=$(printf '%q' "$PYTHON")
+export PYTHON=$(printf '%q' "$PYTHON") SKIP_LISTED=$(printf '%q' "${SKIP_LISTED:-}")
 args=\$(sed -n \"\$((SLURM_ARRAY_TASK_ID + 1))p\" $(printf '%q' "$PWD/$sweep_dir/runs.txt"))
 eval \"bash $(printf '%q' "$REPO/benchmark.sh") --run-one \$args\""
   if ((dry_run)); then

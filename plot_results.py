@@ -2,6 +2,7 @@
 
     python plot_results.py runs --out results                      # TensorBoard logs under runs/
     python plot_results.py results/eval_series.csv --out results   # or the CSV this script writes
+    python plot_results.py results/eval_series.csv runs --finished-only --out results   # both, merged
 
 Writes into --out:
   {prefix}curves.png        eval/episodic_return per env, one line per algorithm: mean over seeds of
@@ -13,8 +14,9 @@ Writes into --out:
   {prefix}iqm.png           interquartile mean of normalised scores (DMC return / 1000) over all runs of
                             all DMC tasks, with 95% stratified bootstrap confidence intervals
                             ("Deep RL at the edge of the statistical precipice", Agarwal et al. 2021)
-  {prefix}final_returns.csv one row per run: algo, env_id, seed, steps, final_return
-  {prefix}eval_series.csv   every evaluation of every run: algo, env_id, seed, step, episodic_return
+  final_returns.csv         one row per run read (all of them, whatever --algos/--env-ids select):
+                            algo, env_id, seed, steps, final_return
+  eval_series.csv           every evaluation of every run read: algo, env_id, seed, step, episodic_return
 
 An algorithm is named by its script (exp_name without `_continuous_action`); runs of one script with
 different hyperparameters (an ablation) get the differing flags appended, e.g. `oparl (q_num=2)`.
@@ -81,7 +83,7 @@ def algorithm_names(configs: list) -> list:
     return names
 
 
-def read_tensorboard(root: str) -> list:
+def read_tensorboard(root: str, finished_only: bool = False) -> list:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     if not os.path.isdir(root):
@@ -89,6 +91,13 @@ def read_tensorboard(root: str) -> list:
     run_dirs = sorted(d for d, _, files in os.walk(root) if any(f.startswith("events.out.tfevents") for f in files))
     if not run_dirs:
         fail(f"{root} holds no TensorBoard runs (no events.out.tfevents.* files below it)")
+    if finished_only:  # benchmark.sh marks a finished run with DONE
+        unfinished = [d for d in run_dirs if not os.path.exists(os.path.join(d, "DONE"))]
+        if unfinished:
+            print(f"leaving out {len(unfinished)} unfinished run(s) (no DONE marker) under {root}")
+        run_dirs = [d for d in run_dirs if d not in unfinished]
+        if not run_dirs:
+            fail(f"no finished run (with a DONE marker) under {root}")
     found, configs, without_eval = [], [], []
     for run_dir in run_dirs:
         acc = EventAccumulator(run_dir, size_guidance={"scalars": 0, "tensors": 0})
@@ -312,19 +321,24 @@ def write_csvs(runs: list, series_path: str, final_path: str):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("source", help="a folder of TensorBoard runs (e.g. runs) or an eval_series.csv written by this script")
+    parser.add_argument("sources", nargs="+", help="folders of TensorBoard runs (e.g. runs) and/or eval_series.csv files written by this script; a run found twice keeps its longer record")
     parser.add_argument("--out", default="results", help="output folder")
     parser.add_argument("--prefix", default="", help="prefix of every output file name, e.g. ablation_")
     parser.add_argument("--algos", nargs="+", help="only these algorithms (names as in the table)")
     parser.add_argument("--env-ids", nargs="+", help="only these environments")
     parser.add_argument("--paper-table", default=PAPER_TABLE, help="the paper's Table 1 as CSV (default: paper/paper_table1.csv)")
     parser.add_argument("--no-paper", action="store_true", help="leave out the paper's numbers")
+    parser.add_argument("--finished-only", action="store_true", help="from runs folders, only runs benchmark.sh marked DONE")
     args = parser.parse_args(argv)
 
-    if os.path.isfile(args.source) and args.source.endswith(".csv"):
-        runs = read_csv(args.source)
-    else:
-        runs = read_tensorboard(args.source)
+    merged = {}
+    for source in args.sources:
+        found = read_csv(source) if os.path.isfile(source) and source.endswith(".csv") else read_tensorboard(source, args.finished_only)
+        for run in found:
+            key = (run.algo, run.env_id, run.seed)
+            if key not in merged or len(run.steps) > len(merged[key].steps):
+                merged[key] = run
+    runs = all_runs = list(merged.values())
     for name, wanted, key in [("--algos", args.algos, "algo"), ("--env-ids", args.env_ids, "env_id")]:
         if wanted:
             unknown = set(wanted) - {getattr(r, key) for r in runs}
@@ -343,9 +357,10 @@ def main(argv=None):
         plot_iqm(stats, out("iqm.png"))
     else:
         print("no DMC task among the runs: no IQM plot (scores are normalised as DMC return / 1000)")
-    write_csvs(runs, out("eval_series.csv"), out("final_returns.csv"))
-    written = ["curves.png", "table.md", *(["iqm.png"] if stats else []), "eval_series.csv", "final_returns.csv"]
-    print(f"{len(runs)} runs of {len({r.algo for r in runs})} algorithm(s) on {len({r.env_id for r in runs})} env(s) -> {', '.join(out(w) for w in written)}")
+    write_csvs(all_runs, os.path.join(args.out, "eval_series.csv"), os.path.join(args.out, "final_returns.csv"))
+    written = [out(name) for name in ["curves.png", "table.md", *(["iqm.png"] if stats else [])]]
+    written += [os.path.join(args.out, name) for name in ("eval_series.csv", "final_returns.csv")]
+    print(f"{len(runs)} runs of {len({r.algo for r in runs})} algorithm(s) on {len({r.env_id for r in runs})} env(s) -> {', '.join(written)}")
 
 
 if __name__ == "__main__":

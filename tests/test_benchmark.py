@@ -199,3 +199,12 @@ def test_slurm_array_runs_every_run_of_the_sweep(slurm, tmp_path):
     job_script = next((work / "slurm").iterdir()) / "job.sh"
     text = job_script.read_text()
     assert "#SBATCH --array=0-1" in text and "#SBATCH --partition=debug" in text and "#SBATCH --job-name=tiny-sweep" in text
+
+
+def test_runs_listed_as_finished_are_skipped(tmp_path):
+    listed = tmp_path / "finished_runs.txt"
+    listed.write_text("Pendulum-v1__td3__1__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1\n")
+    result = bench("--algos", "td3", "--env-ids", "Pendulum-v1", "--seeds", "1", "2", "--skip-listed", str(listed), *TINY, cwd=tmp_path)
+    assert "summary: 1 done, 1 skipped (finished before), 0 failed" in result.stdout, result.stdout + result.stderr
+    assert sorted(os.listdir(tmp_path / "runs")) == ["Pendulum-v1__td3__2__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1"]
+    assert "no such file" in bench("--skip-listed", "nope.txt", cwd=tmp_path).stderr

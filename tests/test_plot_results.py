@@ -159,3 +159,25 @@ def test_foreign_csv_is_refused(tmp_path):
 def test_filters_name_what_exists(sweep, tmp_path):
     with pytest.raises(SystemExit, match="--algos: redq not found; the runs have oparl, td3"):
         pr.main([sweep, "--out", str(tmp_path / "out"), "--algos", "redq"])
+
+
+def test_sources_merge_and_finished_only_skips_unmarked_runs(sweep, tmp_path, capsys):
+    first = str(tmp_path / "first")
+    pr.main([sweep, "--out", first, "--no-paper", "--env-ids", DMC_A])
+    more = str(tmp_path / "more")
+    done = write_run(more, "sac_continuous_action", DMC_A, 1, [0, 5, 7])
+    open(os.path.join(done, "DONE"), "w").close()
+    write_run(more, "sac_continuous_action", DMC_A, 2, [0, 5])  # still running: no DONE
+    merged = str(tmp_path / "merged")
+    pr.main([os.path.join(first, "eval_series.csv"), more, "--finished-only", "--out", merged, "--no-paper"])
+    assert "leaving out 1 unfinished run(s)" in capsys.readouterr().out
+    rows = open(os.path.join(merged, "final_returns.csv")).read().splitlines()
+    assert len(rows) == 1 + 12 + 1 and "sac,dm_control/cartpole-swingup-v0,1,10000,7.0000" in rows
+
+
+def test_selection_shapes_the_figures_but_the_csvs_keep_every_run(sweep, tmp_path):
+    out = str(tmp_path / "out")
+    pr.main([sweep, "--out", out, "--no-paper", "--algos", "td3", "--prefix", "td3_"])
+    assert "oparl" not in open(os.path.join(out, "td3_table.md")).read()
+    assert len(open(os.path.join(out, "final_returns.csv")).read().splitlines()) == 13
+    assert not os.path.exists(os.path.join(out, "td3_final_returns.csv"))

@@ -57,8 +57,11 @@ def phase_of(stack: list) -> str:
 
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
-    if not argv or argv[0] not in {"td3", "sac", "oparl"} or argv[0] in {"-h", "--help"}:
-        sys.exit(__doc__ if argv and argv[0] in {"-h", "--help"} else "error: usage: python tools/profile_run.py {td3,sac,oparl} [script flags]")
+    scripts = sorted(f.removesuffix("_continuous_action.py") for f in os.listdir(REPO) if f.endswith("_continuous_action.py"))
+    if argv and argv[0] in {"-h", "--help"}:
+        sys.exit(__doc__)
+    if not argv or argv[0] not in scripts:
+        sys.exit(f"error: usage: python tools/profile_run.py {{{','.join(scripts)}}} [script flags]")
     if shutil.which("py-spy") is None:
         sys.exit("error: py-spy not found: pip install py-spy")
     script = os.path.join(REPO, f"{argv[0]}_continuous_action.py")

@@ -5,14 +5,15 @@ creation, the random phase) and a run of L + T steps (the same plus T training s
 figure is T / (time(L + T) - time(L)). Entries are alternated within every repeat, after one
 untimed warm-up run each, and the median over repeats is reported.
 
-An entry is one of our scripts by short name (`td3`, `sac`, `oparl`), any script path, or a whole
+An entry is one of our scripts by short name (`td3`, `sac`, `oparl`, `redq`, `ppo`), any script path, or a whole
 command prefix, each optionally followed by its own flags, e.g.
 
     python tools/throughput.py td3 sac oparl "oparl --bf16" --env-id Hopper-v4 --threads 1
     PYTHONPATH=../cleanrl python tools/throughput.py td3 "../cleanrl-venv/bin/python ../cleanrl/cleanrl/td3_continuous_action.py"
 
-Every entry gets `--env-id E --total-timesteps N --learning-starts L --seed 1 --no-cuda`; our own
-scripts also get a single evaluation episode at the end and a throw-away run folder.
+Every entry gets `--env-id E --total-timesteps N --learning-starts L --seed 1 --no-cuda` (no
+`--learning-starts` for a script without one, such as PPO, whose L steps are then ordinary ones);
+our own scripts also get a single evaluation episode at the end and a throw-away run folder.
 """
 import argparse
 import os
@@ -25,7 +26,7 @@ import tempfile
 import time
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-OURS = {"td3", "sac", "oparl"}
+OURS = {f.removesuffix("_continuous_action.py") for f in os.listdir(REPO) if f.endswith("_continuous_action.py")}
 
 
 def command_of(entry: str) -> tuple[list, bool]:
@@ -38,9 +39,20 @@ def command_of(entry: str) -> tuple[list, bool]:
     return words, False
 
 
+def has_random_phase(prefix: list) -> bool:
+    """Whether the entry's script takes --learning-starts (PPO, on-policy, has no random phase)."""
+    script = next((word for word in prefix if word.endswith(".py")), None)
+    if script is None:
+        return True
+    with open(script) as f:
+        return "learning_starts:" in f.read()
+
+
 def timed_run(entry: str, env_id: str, steps: int, learning_starts: int, threads: int, workdir: str) -> float:
     prefix, ours = command_of(entry)
-    flags = ["--env-id", env_id, "--total-timesteps", str(steps), "--learning-starts", str(learning_starts), "--seed", "1", "--no-cuda"]
+    flags = ["--env-id", env_id, "--total-timesteps", str(steps), "--seed", "1", "--no-cuda"]
+    if has_random_phase(prefix):
+        flags += ["--learning-starts", str(learning_starts)]
     if ours:
         flags += ["--eval-frequency", str(10**9), "--eval-episodes", "1", "--run-name", f"throughput_{time.time_ns()}"]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
@@ -62,7 +74,7 @@ def cpu_name() -> str:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("entries", nargs="+", help="td3 | sac | oparl | path/to/script.py | 'command prefix', each with optional flags")
+    parser.add_argument("entries", nargs="+", help="a short name (td3, sac, oparl, redq, ppo) | path/to/script.py | 'command prefix', each with optional flags")
     parser.add_argument("--env-id", default="Hopper-v4")
     parser.add_argument("--learning-starts", type=int, default=1000, help="L: random steps before training")
     parser.add_argument("--steps", type=int, default=2000, help="T: training steps timed")
