@@ -117,7 +117,7 @@ def check_args(args: Args):
         (args.noise_clip >= 0, f"--noise-clip must be >= 0, got {args.noise_clip}"),
         (args.exploration_noise >= 0, f"--exploration-noise must be >= 0, got {args.exploration_noise}"),
         (args.policy_frequency > 0, f"--policy-frequency must be > 0, got {args.policy_frequency}"),
-        (args.q_num >= 1, f"--q-num must be >= 1, got {args.q_num}"),
+        (args.q_num >= 2, f"--q-num must be >= 2 (min and max need an ensemble), got {args.q_num}"),
         (0 <= args.optimistic_ratio <= 1, f"--optimistic-ratio must be in [0, 1], got {args.optimistic_ratio}"),
         (args.num_candidates >= 1, f"--num-candidates must be >= 1, got {args.num_candidates}"),
         (args.reset_frequency >= 0, f"--reset-frequency must be >= 0 (0: never), got {args.reset_frequency}"),

@@ -207,7 +207,7 @@ EXTRA_BAD_INPUTS = {
     ],
     "oparl": [
         (["--policy-frequency", "0"], "--policy-frequency must be > 0"),
-        (["--q-num", "0"], "--q-num must be >= 1"),
+        (["--q-num", "1"], "--q-num must be >= 2"),
         (["--optimistic-ratio", "1.5"], "--optimistic-ratio must be in [0, 1]"),
         (["--optimistic-ratio", "-0.1"], "--optimistic-ratio must be in [0, 1]"),
         (["--num-candidates", "0"], "--num-candidates must be >= 1"),
