@@ -87,7 +87,7 @@ class Args:
 
 def fail(message: str):
     """Stop with one line on stderr and exit status 1, no traceback."""
-    raise SystemExit(f"error: {message}")
+    raise SystemExit("error: " + " ".join(message.split()))
 
 
 def check_args(args: Args):
@@ -138,6 +138,8 @@ def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_e
         fail(f"could not create --env-id {env_id!r}: {type(e).__name__}: {e}")
     if not isinstance(env.action_space, gym.spaces.Box):
         fail(f"--env-id {env_id!r} has a {type(env.action_space).__name__} action space; only continuous (Box) actions are supported")
+    if not (np.isfinite(env.action_space.low).all() and np.isfinite(env.action_space.high).all()):
+        fail(f"--env-id {env_id!r} has unbounded actions; the policies here act within finite bounds")
     if isinstance(env.observation_space, gym.spaces.Dict):  # DeepMind Control observations are dicts of arrays
         env = gym.wrappers.FlattenObservation(env)
     env = gym.wrappers.TransformObservation(env, lambda obs: obs.astype(np.float32), float32_box(env.observation_space))

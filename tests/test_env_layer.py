@@ -104,3 +104,21 @@ def test_buffer_holds_every_transition_with_its_true_final_observation(script, t
             assert not np.allclose(next_obs[t], obs[t + 1])
         elif t + 1 < 450:
             np.testing.assert_array_equal(next_obs[t], obs[t + 1])
+
+
+class UnboundedActions(gym.Env):
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
+
+
+def test_unbounded_actions_are_refused(algo):
+    if "UnboundedActions-v0" not in gym.registry:
+        gym.register("UnboundedActions-v0", entry_point=UnboundedActions)
+    with pytest.raises(SystemExit, match="has unbounded actions"):
+        algo.make_env("UnboundedActions-v0", seed=0)
+
+
+def test_error_messages_are_one_line(algo):
+    with pytest.raises(SystemExit) as exit_info:
+        algo.fail("first line\nsecond   line")
+    assert str(exit_info.value) == "error: first line second line"
