@@ -110,6 +110,9 @@ class UnboundedActions(gym.Env):
     observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
     action_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
 
+    def __init__(self, render_mode=None):
+        self.render_mode = render_mode
+
 
 def test_unbounded_actions_are_refused(algo):
     if "UnboundedActions-v0" not in gym.registry:
