@@ -44,3 +44,12 @@ def test_profile_run_attributes_samples_to_phases():
         pytest.skip(f"py-spy may not sample here: {result.stderr.strip()}")
     assert result.returncode == 0, result.stderr
     assert "| critic update (forward, backward, Adam) |" in result.stdout and "| TD target |" in result.stdout
+
+
+def test_memory_tool_reports_checkpoint_cost_and_resident_memory():
+    result = tool("memory.py", "checkpoint", "--script", "td3", "--rows", "1000")
+    assert result.returncode == 0, result.stderr
+    assert "td3, Hopper-v4 shapes, 1000 transitions:" in result.stdout and "MiB" in result.stdout and "write" in result.stdout
+    result = tool("memory.py", "rss", "td3", "--env-id", "Pendulum-v1", "--total-timesteps", "300", "--learning-starts", "256")
+    assert result.returncode == 0, result.stderr
+    assert "resident memory" in result.stdout and "peak" in result.stdout
