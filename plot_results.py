@@ -6,8 +6,8 @@
 
 Writes into --out:
   {prefix}curves.png        eval/episodic_return per env, one line per algorithm: mean over seeds of
-                            each run's curve smoothed over 10 evaluations, shaded +- half a std (the
-                            paper's Figure 2 style)
+                            each run's curve smoothed over --smoothing evaluations (default 10), shaded
+                            +- half a std (the paper's Figure 2 style)
   {prefix}table.md          mean +- std of the final evaluation per algorithm and env (best in bold), an
                             average row, OPARL's improvement over each baseline, the IQM with its 95% CI,
                             and (unless --no-paper) the paper's Table 1 numbers beside ours
@@ -34,7 +34,7 @@ TAG = "eval/episodic_return"
 PAPER_TABLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paper", "paper_table1.csv")
 # hyperparameters that do not change what a run learns, or that identify it rather than its algorithm
 NOT_ALGORITHM = {"seed", "env_id", "exp_name", "run_name", "resume", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda", "torch_deterministic"}
-SMOOTHING = 10  # evaluations
+SMOOTHING = 10  # evaluations: 50k steps of a 1M-step run at one evaluation per 5000
 BOOTSTRAP_REPS = 2000
 
 
@@ -178,7 +178,7 @@ def complete_runs(runs: list) -> dict:
     return complete
 
 
-def plot_curves(runs: list, path: str):
+def plot_curves(runs: list, path: str, window: int = SMOOTHING):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -198,7 +198,7 @@ def plot_curves(runs: list, path: str):
             steps = np.unique(np.concatenate([r.steps for r in group]))
             curves = np.full((len(group), len(steps)), np.nan)
             for i, r in enumerate(group):  # each run on the common grid; NaN where a run stopped early
-                curves[i, np.searchsorted(steps, r.steps)] = smooth(r.returns)
+                curves[i, np.searchsorted(steps, r.steps)] = smooth(r.returns, window)
             mean, std = np.nanmean(curves, 0), np.nanstd(curves, 0)
             ax.plot(steps, mean, color=colors[algo], label=f"{algo} ({len(group)} seeds)")
             ax.fill_between(steps, mean - std / 2, mean + std / 2, color=colors[algo], alpha=0.2)
@@ -328,8 +328,11 @@ def main(argv=None):
     parser.add_argument("--env-ids", nargs="+", help="only these environments")
     parser.add_argument("--paper-table", default=PAPER_TABLE, help="the paper's Table 1 as CSV (default: paper/paper_table1.csv)")
     parser.add_argument("--no-paper", action="store_true", help="leave out the paper's numbers")
+    parser.add_argument("--smoothing", type=int, default=SMOOTHING, help="trailing window of the curves, in evaluations (1: raw curves); the table and IQM use the raw final evaluation")
     parser.add_argument("--finished-only", action="store_true", help="from runs folders, only runs benchmark.sh marked DONE")
     args = parser.parse_args(argv)
+    if args.smoothing < 1:
+        fail(f"--smoothing must be a whole number of evaluations >= 1 (1 draws the raw curves), got {args.smoothing}")
 
     merged = {}
     for source in args.sources:
@@ -351,7 +354,7 @@ def main(argv=None):
     out = lambda name: os.path.join(args.out, args.prefix + name)  # noqa: E731
     complete = complete_runs(runs)
     stats = aggregate(complete, algo_order({a for a, _ in complete}))
-    plot_curves(runs, out("curves.png"))
+    plot_curves(runs, out("curves.png"), args.smoothing)
     write_table(complete, stats, paper, out("table.md"))
     if stats:
         plot_iqm(stats, out("iqm.png"))

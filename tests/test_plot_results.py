@@ -103,6 +103,16 @@ def test_smoothing_is_a_trailing_window():
     np.testing.assert_allclose(pr.smooth(np.arange(12.0))[-1], np.mean(np.arange(2.0, 12.0)))
 
 
+def test_smoothing_window_is_a_flag(sweep, tmp_path, monkeypatch):
+    windows = []
+    real = pr.smooth
+    monkeypatch.setattr(pr, "smooth", lambda values, window=pr.SMOOTHING: windows.append(window) or real(values, window))
+    pr.main([sweep, "--out", str(tmp_path / "a"), "--no-paper", "--smoothing", "3"])
+    assert windows and set(windows) == {3}
+    with pytest.raises(SystemExit, match="--smoothing must be a whole number of evaluations >= 1"):
+        pr.main([sweep, "--out", str(tmp_path / "b"), "--smoothing", "0"])
+
+
 def test_variants_of_one_script_are_told_apart(tmp_path):
     root = str(tmp_path / "runs")
     for seed in (1, 2):
