@@ -38,8 +38,9 @@ Usage: bash benchmark.sh [flags] [-- flags passed to every script]
 Runs are named {env}__{algo}__{seed}__{steps}[__{extra flags}] ('/' in the env id written '-'):
 TensorBoard logs go to runs/{name}/, each run's output to logs/{name}.log. A finished run is marked
 runs/{name}/DONE and skipped next time; an unfinished one resumes from runs/{name}/checkpoint.pt, or
-starts again if it had none. One failing run doesn't stop the others; the summary lists failures
-and the exit status is non-zero if any run failed.
+starts again if it had none. A run that another sweep is running (it holds logs/{name}.lock) is
+left alone, so two sweeps over overlapping lists can share one folder. One failing run doesn't stop
+the others; the summary lists failures and the exit status is non-zero if any run failed.
 
 Example: bash benchmark.sh --algos td3 oparl --env-ids dm_control/cartpole-balance-v0 --seeds 1 2 \\
            --workers 2 --total-timesteps 2000 -- --learning-starts 1000
@@ -63,7 +64,7 @@ run_name() {  # algo env seed total extra...
   printf '%s' "$name"
 }
 
-# One run, skipped if finished, resumed if it has a checkpoint. Prints one word: done, skipped, failed.
+# One run, skipped if finished, resumed if it has a checkpoint. Prints one word: done, skipped, busy, failed.
 run_one() {  # algo env seed total checkpoint_frequency [-- extra...]
   local algo=$1 env=$2 seed=$3 total=$4 ckpt=$5; shift 5
   [[ ${1:-} == "--" ]] && shift
@@ -72,6 +73,11 @@ run_one() {  # algo env seed total checkpoint_frequency [-- extra...]
   dir="runs/$name" log="logs/$name.log"
   if [[ -f $dir/DONE ]] || { [[ -n ${SKIP_LISTED:-} ]] && grep -qxF "$name" "$SKIP_LISTED"; }; then echo skipped; return 0; fi
   mkdir -p logs
+  # one process per run: a second sweep over the same folder (or a re-submitted Slurm task) leaves a
+  # run alone while another holds its lock; the training process inherits the lock and keeps it
+  local lock
+  exec {lock}>>"logs/$name.lock"
+  if ! flock -n "$lock"; then echo busy; return 0; fi
   local resume=()
   if [[ -f $dir/checkpoint.pt ]]; then
     resume=(--resume "$dir")
@@ -220,16 +226,18 @@ for i in "${!runs[@]}"; do
 done
 while (($(jobs -rp | wc -l) > 0)); do wait -n; progress; done
 
-done_runs=() skipped_runs=() failed_runs=()
+done_runs=() skipped_runs=() busy_runs=() failed_runs=()
 for i in "${!runs[@]}"; do
   eval "set -- ${runs[$i]}"
   name="$(run_name "$1" "$2" "$3" "$4" "${@:7}")"
   case "$(cat "$status_dir/$i.status")" in
     done) done_runs+=("$name") ;;
     skipped) skipped_runs+=("$name") ;;
+    busy) busy_runs+=("$name") ;;
     *) failed_runs+=("$name") ;;
   esac
 done
 echo "summary: ${#done_runs[@]} done, ${#skipped_runs[@]} skipped (finished before), ${#failed_runs[@]} failed"
+for name in "${busy_runs[@]}"; do echo "  left alone, running in another sweep: $name (log: logs/$name.log)"; done
 for name in "${failed_runs[@]}"; do echo "  failed: $name (log: logs/$name.log)"; done
 ((${#failed_runs[@]} == 0))

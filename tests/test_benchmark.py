@@ -1,4 +1,5 @@
 """benchmark.sh: the sweep's commands, parallel runs, skip and resume, failures, and a real Slurm."""
+import fcntl
 import os
 import shutil
 import socket
@@ -70,6 +71,21 @@ def test_sweep_runs_in_parallel_then_skips_finished_runs(tmp_path):
         assert (tmp_path / "runs" / name / "DONE").exists() and (tmp_path / "logs" / f"{name}.log").exists()
     second = bench(*flags, cwd=tmp_path)
     assert "summary: 0 done, 2 skipped (finished before), 0 failed" in second.stdout
+
+
+def test_a_run_another_sweep_holds_is_left_alone(tmp_path):
+    flags = ["--algos", "td3", "--env-ids", "Pendulum-v1", "--seeds", "1", *TINY]
+    name = "Pendulum-v1__td3__1__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1"
+    os.makedirs(tmp_path / "logs")
+    with open(tmp_path / "logs" / f"{name}.lock", "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as the training process of another sweep would
+        busy = bench(*flags, cwd=tmp_path)
+    assert busy.returncode == 0, busy.stdout + busy.stderr
+    assert "summary: 0 done, 0 skipped (finished before), 0 failed" in busy.stdout
+    assert f"left alone, running in another sweep: {name}" in busy.stdout
+    assert not os.path.exists(tmp_path / "runs" / name)
+    free = bench(*flags, cwd=tmp_path)  # the lock released: the run goes ahead
+    assert "summary: 1 done, 0 skipped (finished before), 0 failed" in free.stdout, free.stdout + free.stderr
 
 
 def test_unfinished_run_resumes_from_its_checkpoint(tmp_path):
