@@ -75,9 +75,12 @@ run_one() {  # algo env seed total checkpoint_frequency [-- extra...]
   mkdir -p logs
   # one process per run: a second sweep over the same folder (or a re-submitted Slurm task) leaves a
   # run alone while another holds its lock; the training process inherits the lock and keeps it
-  local lock
-  exec {lock}>>"logs/$name.lock"
-  if ! flock -n "$lock"; then echo busy; return 0; fi
+  # (util-linux's flock; without it runs are not locked)
+  if command -v flock >/dev/null; then
+    local lock
+    exec {lock}>>"logs/$name.lock"
+    if ! flock -n "$lock"; then echo busy; return 0; fi
+  fi
   local resume=()
   if [[ -f $dir/checkpoint.pt ]]; then
     resume=(--resume "$dir")

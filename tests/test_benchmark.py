@@ -73,6 +73,7 @@ def test_sweep_runs_in_parallel_then_skips_finished_runs(tmp_path):
     assert "summary: 0 done, 2 skipped (finished before), 0 failed" in second.stdout
 
 
+@pytest.mark.skipif(shutil.which("flock") is None, reason="flock (util-linux) is not installed: runs are not locked")
 def test_a_run_another_sweep_holds_is_left_alone(tmp_path):
     flags = ["--algos", "td3", "--env-ids", "Pendulum-v1", "--seeds", "1", *TINY]
     name = "Pendulum-v1__td3__1__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1"
