@@ -12,7 +12,7 @@ Writes into --out:
                             average row, OPARL's improvement over each baseline, the IQM with its 95% CI,
                             and (unless --no-paper) the paper's Table 1 numbers beside ours
   {prefix}iqm.png           interquartile mean of normalised scores (DMC return / 1000) over all runs of
-                            all DMC tasks, with 95% stratified bootstrap confidence intervals
+                            the DMC tasks every algorithm has finished, with 95% stratified bootstrap confidence intervals
                             ("Deep RL at the edge of the statistical precipice", Agarwal et al. 2021)
   final_returns.csv         one row per run read (all of them, whatever --algos/--env-ids select):
                             algo, env_id, seed, steps, final_return
@@ -214,15 +214,23 @@ def plot_curves(runs: list, path: str, window: int = SMOOTHING):
     plt.close(fig)
 
 
-def normalised_scores(complete: dict, algo: str) -> list:
-    """Per DMC task, the final returns / 1000 of `algo`'s runs."""
-    return [np.array([r.returns[-1] for r in group]) / 1000.0 for (a, env), group in sorted(complete.items()) if a == algo and env.startswith("dm_control/")]
+def normalised_scores(complete: dict, algo: str, envs: set) -> list:
+    """Per DMC task in `envs`, the final returns / 1000 of `algo`'s runs."""
+    return [np.array([r.returns[-1] for r in group]) / 1000.0 for (a, env), group in sorted(complete.items()) if a == algo and env in envs]
 
 
 def aggregate(complete: dict, algos: list) -> dict:
+    """IQM and CI per algorithm over the DMC tasks that every algorithm with DMC runs has finished, so
+    that the algorithms are compared on the same tasks."""
+    dmc = {a: {env for (b, env) in complete if b == a and env.startswith("dm_control/")} for a in algos}
+    dmc = {a: envs for a, envs in dmc.items() if envs}
+    shared = set.intersection(*dmc.values()) if dmc else set()
+    left_out = set.union(*dmc.values()) - shared if dmc else set()
+    if left_out:
+        warn(f"IQM only over the DMC tasks every algorithm has finished ({len(shared)}); left out: {', '.join(sorted(e.removeprefix('dm_control/') for e in left_out))}")
     result = {}
     for algo in algos:
-        scores = normalised_scores(complete, algo)
+        scores = normalised_scores(complete, algo, shared)
         if scores:
             result[algo] = (iqm(np.concatenate(scores)), *stratified_bootstrap_ci(scores), len(scores), sum(len(s) for s in scores))
     return result
@@ -297,7 +305,7 @@ def write_table(complete: dict, stats: dict, paper: dict, path: str):
             if a != "oparl":
                 lines.append(f"- OPARL vs {a}: {100 * (averages['oparl'] / averages[a] - 1):+.1f}% on the average row")
     if stats:
-        lines += ["", "Interquartile mean of normalised scores (DMC return / 1000) over all runs of all DMC tasks, 95% stratified bootstrap CI:", ""]
+        lines += ["", "Interquartile mean of normalised scores (DMC return / 1000) over all runs of the DMC tasks every algorithm has finished, 95% stratified bootstrap CI:", ""]
         lines += ["| algorithm | IQM | 95% CI | tasks | runs |", "|---|---|---|---|---|"]
         for a in algo_order(stats):
             value, low, high, tasks, runs = stats[a]

@@ -103,6 +103,17 @@ def test_smoothing_is_a_trailing_window():
     np.testing.assert_allclose(pr.smooth(np.arange(12.0))[-1], np.mean(np.arange(2.0, 12.0)))
 
 
+def test_iqm_compares_algorithms_on_the_same_tasks(sweep, tmp_path, capsys):
+    # a third task that only oparl has finished must not enter oparl's IQM
+    for seed in (1, 2, 3):
+        write_run(sweep, "oparl_continuous_action", "dm_control/finger-spin-v0", seed, [0, 0])
+    out = str(tmp_path / "out")
+    pr.main([sweep, "--out", out, "--no-paper"])
+    assert "IQM only over the DMC tasks every algorithm has finished (2); left out: finger-spin-v0" in capsys.readouterr().err
+    table = open(os.path.join(out, "table.md")).read()
+    assert f"| oparl | {np.mean([0.2, 0.3, 0.9, 0.9]):.3f} |" in table and "| 2 | 6 |" in table
+
+
 def test_smoothing_window_is_a_flag(sweep, tmp_path, monkeypatch):
     windows = []
     real = pr.smooth
