@@ -222,10 +222,10 @@ def normalised_scores(complete: dict, algo: str, envs: set) -> list:
 def aggregate(complete: dict, algos: list) -> dict:
     """IQM and CI per algorithm over the DMC tasks that every algorithm with DMC runs has finished, so
     that the algorithms are compared on the same tasks."""
-    dmc = {a: {env for (b, env) in complete if b == a and env.startswith("dm_control/")} for a in algos}
-    dmc = {a: envs for a, envs in dmc.items() if envs}
-    shared = set.intersection(*dmc.values()) if dmc else set()
-    left_out = set.union(*dmc.values()) - shared if dmc else set()
+    per_algo = [{env for (b, env) in complete if b == a and env.startswith("dm_control/")} for a in algos]
+    per_algo = [envs for envs in per_algo if envs]
+    shared = set.intersection(*per_algo) if per_algo else set()
+    left_out = set().union(*per_algo) - shared
     if left_out:
         warn(f"IQM only over the DMC tasks every algorithm has finished ({len(shared)}); left out: {', '.join(sorted(e.removeprefix('dm_control/') for e in left_out))}")
     result = {}
