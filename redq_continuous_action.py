@@ -260,6 +260,12 @@ def td_target(batch: Batch, actor: Actor, qf_target: QEnsemble, alpha: torch.Ten
         return batch.rewards + (1 - batch.terminations) * args.gamma * min_qf_next_target
 
 
+def bf16_autocast(device: torch.device, enabled: bool):
+    """--bf16: the matmuls of one training step in bfloat16. Autocast's cache of cast weights is off:
+    an optimizer updates weights in place within the step, and a cached cast would keep the old values."""
+    return torch.autocast(device.type, torch.bfloat16, enabled=enabled, cache_enabled=False)
+
+
 class NonFiniteError(Exception):
     """A loss became NaN or infinite; raised before the optimizer step it would have poisoned."""
 
@@ -545,7 +551,7 @@ def main(args: Args):
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
             try:
-                with torch.autocast(device.type, torch.bfloat16, enabled=args.bf16):
+                with bf16_autocast(device, args.bf16):
                     for _ in range(args.utd_ratio):  # G critic updates per environment step
                         batch = rb.sample(args.batch_size)
                         qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, actor, qf_target, alpha, args)

@@ -237,6 +237,12 @@ def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Arg
         return batch.rewards + (1 - batch.terminations) * args.gamma * min_qf_next_target
 
 
+def bf16_autocast(device: torch.device, enabled: bool):
+    """--bf16: the matmuls of one training step in bfloat16. Autocast's cache of cast weights is off:
+    an optimizer updates weights in place within the step, and a cached cast would keep the old values."""
+    return torch.autocast(device.type, torch.bfloat16, enabled=enabled, cache_enabled=False)
+
+
 class NonFiniteError(Exception):
     """A loss became NaN or infinite; raised before the optimizer step it would have poisoned."""
 
@@ -502,7 +508,7 @@ def main(args: Args):
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
             try:
-                with torch.autocast(device.type, torch.bfloat16, enabled=args.bf16):
+                with bf16_autocast(device, args.bf16):
                     batch = rb.sample(args.batch_size)
                     qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
                     if global_step % args.policy_frequency == 0:

@@ -142,6 +142,27 @@ def test_resume_with_other_hyperparameters_is_refused(script, finished_run):
     assert "--gamma 0.5 (run: 0.99)" in one_line_error(result)
 
 
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_bf16_step_sees_weights_an_optimizer_changed_within_the_step(script):
+    # SAC and REDQ use the actor again after its optimizer step, inside one training step
+    layer, x = torch.nn.Linear(8, 8), torch.randn(4, 8)
+    with load(script).bf16_autocast(torch.device("cpu"), True):
+        before = layer(x)
+        with torch.no_grad():
+            layer.weight.add_(1.0)
+        after = layer(x)
+    assert before.dtype == torch.bfloat16
+    assert torch.allclose(after.float(), x @ layer.weight.T + layer.bias, rtol=0.02, atol=0.05)
+    assert not torch.allclose(before.float(), after.float(), atol=0.5)
+
+
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_bf16_off_keeps_float32(script):
+    layer, x = torch.nn.Linear(8, 8), torch.randn(4, 8)
+    with load(script).bf16_autocast(torch.device("cpu"), False):
+        assert layer(x).dtype == torch.float32
+
+
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_non_finite_loss_stops_with_the_step_and_the_last_good_state(script, tmp_path):
     flags = ["--env-id", "Pendulum-v1", *cli_flags(script, total_timesteps=600, learning_starts=100, batch_size=32, eval_frequency=600, eval_episodes=1)]
