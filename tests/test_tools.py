@@ -53,3 +53,58 @@ def test_memory_tool_reports_checkpoint_cost_and_resident_memory():
     result = tool("memory.py", "rss", "td3", "--env-id", "Pendulum-v1", "--total-timesteps", "300", "--learning-starts", "256")
     assert result.returncode == 0, result.stderr
     assert "resident memory" in result.stdout and "peak" in result.stdout
+
+
+
+# float32 matmuls of a few shapes the scripts use; prints the preload, the largest error against
+# float64 (per sqrt of the summed length) and a digest of the exact float32 bits, which tells one
+# set of kernels from another
+MATMUL_PROBE = """
+import hashlib, os, torch
+torch.manual_seed(0)
+worst, digest = 0.0, hashlib.sha1()
+for m, k, n in [(256, 256, 256), (256, 14, 256), (512, 256, 256)]:
+    a, b = torch.randn(m, k), torch.randn(k, n)
+    c = a @ b
+    worst = max(worst, ((c.double() - a.double() @ b.double()).abs().max() / k**0.5).item())
+    digest.update(c.numpy().tobytes())
+print(os.environ.get("LD_PRELOAD", "-"), worst, digest.hexdigest())
+"""
+
+
+def mkl_avx512(tmp_path, *command):
+    env = {**os.environ, "MKL_AVX512_BUILD_DIR": str(tmp_path / "build"), "OMP_NUM_THREADS": "1"}
+    env.pop("LD_PRELOAD", None)
+    return subprocess.run(["bash", os.path.join(REPO, "tools", "mkl_avx512.sh"), *command], capture_output=True, text=True, env=env, timeout=300)
+
+
+def amd_with_avx512():
+    with open("/proc/cpuinfo") as f:
+        cpuinfo = f.read()
+    return "AuthenticAMD" in cpuinfo and " avx512f" in cpuinfo
+
+
+def test_mkl_avx512_without_a_command_prints_usage(tmp_path):
+    result = mkl_avx512(tmp_path)
+    assert result.returncode == 2 and result.stderr.startswith("usage: bash tools/mkl_avx512.sh COMMAND")
+
+
+def test_mkl_avx512_runs_the_command_with_its_arguments_and_exit_status(tmp_path):
+    result = mkl_avx512(tmp_path, sys.executable, "-c", "import sys; print('ran', sys.argv[1:]); sys.exit(3)", "a b")
+    assert result.returncode == 3 and result.stdout == "ran ['a b']\n"
+
+
+def test_mkl_avx512_changes_the_kernels_not_the_results(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "LD_PRELOAD"}
+    default = subprocess.run([sys.executable, "-c", MATMUL_PROBE], capture_output=True, text=True, env={**env, "OMP_NUM_THREADS": "1"}, timeout=300)
+    wrapped = mkl_avx512(tmp_path, sys.executable, "-c", MATMUL_PROBE)
+    assert default.returncode == 0 and wrapped.returncode == 0, wrapped.stderr
+    preload, worst, digest = wrapped.stdout.split()
+    assert float(worst) < 1e-5 and float(default.stdout.split()[1]) < 1e-5  # float32 rounding, both
+    if not amd_with_avx512():
+        assert preload == "-" and "not an AMD CPU with AVX-512" in wrapped.stderr
+    elif not (shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")):
+        assert preload == "-" and "no C compiler" in wrapped.stderr
+    else:
+        assert preload == str(tmp_path / "build" / "libmkl_intel_cpu_true.so") and os.path.isfile(preload)
+        assert digest != default.stdout.split()[2]  # MKL took other kernels, which round otherwise
