@@ -22,6 +22,18 @@ def test_throughput_reports_a_median_table_with_ratios():
     assert [line.split(":")[0] for line in result.stderr.splitlines() if line.startswith("repeat")] == ["repeat 1/1 td3 --batch-size 32", "repeat 1/1 td3 --batch-size 32 --bf16"]
 
 
+def test_throughput_runs_an_entry_prefixed_mkl_avx512_through_the_wrapper():
+    sys.path.insert(0, os.path.join(REPO, "tools"))
+    import throughput
+
+    prefix, ours = throughput.command_of("mkl-avx512:td3 --bf16")
+    assert prefix == ["bash", os.path.join(REPO, "tools", "mkl_avx512.sh"), sys.executable, os.path.join(REPO, "td3_continuous_action.py"), "--bf16"] and ours
+    assert throughput.command_of("mkl-avx512:other/script.py")[0][-2:] == [sys.executable, "other/script.py"]
+    assert throughput.command_of("td3")[0] == [sys.executable, os.path.join(REPO, "td3_continuous_action.py")]
+    result = tool("throughput.py", "mkl-avx512:")
+    assert result.returncode != 0 and "names no script or command" in result.stderr
+
+
 def test_throughput_refuses_bad_settings():
     result = tool("throughput.py", "td3", "--steps", "0")
     assert result.returncode != 0 and "--steps must be > 0" in result.stderr

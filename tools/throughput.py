@@ -6,9 +6,11 @@ figure is T / (time(L + T) - time(L)). Entries are alternated within every repea
 untimed warm-up run each, and the median over repeats is reported.
 
 An entry is one of our scripts by short name (`td3`, `sac`, `oparl`, `redq`, `ppo`), any script path, or a whole
-command prefix, each optionally followed by its own flags, e.g.
+command prefix, each optionally followed by its own flags and optionally prefixed by `mkl-avx512:` to run
+it through tools/mkl_avx512.sh (MKL's AVX-512 kernels on AMD CPUs), e.g.
 
     python tools/throughput.py td3 sac oparl "oparl --bf16" --env-id Hopper-v4 --threads 1
+    python tools/throughput.py oparl "mkl-avx512:oparl"   # the same script with tools/mkl_avx512.sh
     PYTHONPATH=../cleanrl python tools/throughput.py td3 "../cleanrl-venv/bin/python ../cleanrl/cleanrl/td3_continuous_action.py"
 
 Every entry gets `--env-id E --total-timesteps N --learning-starts L --seed 1 --no-cuda` (no
@@ -29,14 +31,22 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OURS = {f.removesuffix("_continuous_action.py") for f in os.listdir(REPO) if f.endswith("_continuous_action.py")}
 
 
+MKL_AVX512 = "mkl-avx512:"  # an entry's prefix: run it through tools/mkl_avx512.sh
+
+
 def command_of(entry: str) -> tuple[list, bool]:
     """The command prefix for an entry, and whether it is one of this repository's scripts."""
+    wrapper = []
+    if entry.startswith(MKL_AVX512):
+        wrapper, entry = ["bash", os.path.join(REPO, "tools", "mkl_avx512.sh")], entry.removeprefix(MKL_AVX512)
     words = shlex.split(entry)
+    if not words:
+        sys.exit(f"error: an entry names no script or command after {MKL_AVX512!r}")
     if words[0] in OURS:
-        return [sys.executable, os.path.join(REPO, f"{words[0]}_continuous_action.py"), *words[1:]], True
+        return wrapper + [sys.executable, os.path.join(REPO, f"{words[0]}_continuous_action.py"), *words[1:]], True
     if words[0].endswith(".py"):
-        return [sys.executable, *words], False
-    return words, False
+        return wrapper + [sys.executable, *words], False
+    return wrapper + words, False
 
 
 def has_random_phase(prefix: list) -> bool:
