@@ -119,4 +119,5 @@ def test_mkl_avx512_changes_the_kernels_not_the_results(tmp_path):
         assert preload == "-" and "no C compiler" in wrapped.stderr
     else:
         assert preload == str(tmp_path / "build" / "libmkl_intel_cpu_true.so") and os.path.isfile(preload)
+        assert wrapped.stderr == f"mkl_avx512: MKL's AVX-512 kernels (preloading {preload})\n"
         assert digest != default.stdout.split()[2]  # MKL took other kernels, which round otherwise

@@ -45,5 +45,7 @@ if [[ ! -f $library ]]; then
   mv "$library.tmp.$$" "$library"
 fi
 
+# one line on stderr, so that a run's log records which kernels it used
+echo "mkl_avx512: MKL's AVX-512 kernels (preloading $library)" >&2
 export LD_PRELOAD="$library${LD_PRELOAD:+:$LD_PRELOAD}"
 exec "$@"
