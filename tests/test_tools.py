@@ -67,7 +67,6 @@ def test_memory_tool_reports_checkpoint_cost_and_resident_memory():
     assert "resident memory" in result.stdout and "peak" in result.stdout
 
 
-
 # float32 matmuls of a few shapes the scripts use; prints the preload, the largest error against
 # float64 (per sqrt of the summed length) and a digest of the exact float32 bits, which tells one
 # set of kernels from another

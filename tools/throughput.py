@@ -29,8 +29,6 @@ import time
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OURS = {f.removesuffix("_continuous_action.py") for f in os.listdir(REPO) if f.endswith("_continuous_action.py")}
-
-
 MKL_AVX512 = "mkl-avx512:"  # an entry's prefix: run it through tools/mkl_avx512.sh
 
 
@@ -41,7 +39,7 @@ def command_of(entry: str) -> tuple[list, bool]:
         wrapper, entry = ["bash", os.path.join(REPO, "tools", "mkl_avx512.sh")], entry.removeprefix(MKL_AVX512)
     words = shlex.split(entry)
     if not words:
-        sys.exit(f"error: an entry names no script or command after {MKL_AVX512!r}")
+        sys.exit(f"error: an entry names no script or command (got {MKL_AVX512 if wrapper else ''}{entry!r})")
     if words[0] in OURS:
         return wrapper + [sys.executable, os.path.join(REPO, f"{words[0]}_continuous_action.py"), *words[1:]], True
     if words[0].endswith(".py"):
