@@ -172,10 +172,13 @@ class QEnsemble(nn.Module):
         self.w2, self.b2 = uniform(hidden, hidden, hidden), uniform(hidden, 1, hidden)
         self.w3, self.b3 = uniform(hidden, 1, hidden), uniform(hidden, 1)  # the output layer, as rows
 
-    def forward(self, obs, actions, members=slice(None), detach_params=False):
-        """Q-values [num_q, batch]. `members` selects a subset; `detach_params` lets gradients reach
+    def forward(self, obs, actions, members=None, detach_params=False):
+        """Q-values [num_q, batch]. `members` (an index) selects a subset; `detach_params` lets gradients reach
         the actions only, which is all an actor loss needs."""
-        w1, b1, w2, b2, w3, b3 = (p[members].detach() if detach_params else p[members] for p in self.parameters())
+        params = list(self.parameters())
+        if members is not None:  # not always: even a full slice would copy each weight's gradient in backward
+            params = [p[members] for p in params]
+        w1, b1, w2, b2, w3, b3 = [p.detach() for p in params] if detach_params else params
         x = torch.cat([obs, actions], -1)
         x = F.relu(torch.baddbmm(b1, x.expand(len(w1), -1, -1), w1))
         x = F.relu(torch.baddbmm(b2, x, w2))
