@@ -195,7 +195,8 @@ class Agent(nn.Module):
     def get_action_and_value(self, x, action=None):
         action_mean = self.actor_mean(x)
         action_std = torch.exp(self.actor_logstd.expand_as(action_mean))
-        probs = Normal(action_mean, action_std)
+        # unvalidated: a collapsed std becomes a non-finite loss, which the NaN guard reports with its step
+        probs = Normal(action_mean, action_std, validate_args=False)
         if action is None:
             action = probs.sample()
         return action, probs.log_prob(action).sum(-1), probs.entropy().sum(-1), self.get_value(x)

@@ -86,3 +86,15 @@ def test_learning_rate_anneals_to_zero_over_the_run(tmp_path, monkeypatch):
     # 4 rollouts of 256: the last is trained at lr * (1 - 3/4)
     assert result["optimizer"].param_groups[0]["lr"] == pytest.approx(3e-4 / 4)
     assert math.isclose(ppo.Args().learning_rate, 3e-4)
+
+
+def test_a_collapsed_std_reaches_the_nan_guard_as_a_non_finite_loss():
+    # after a huge step the std can be exactly 0; that must become a non-finite loss (reported in one line
+    # by the guard), not an exception from the distribution's argument checks
+    torch.manual_seed(0)
+    agent = ppo.Agent(3, 1)
+    with torch.no_grad():
+        agent.actor_logstd.fill_(-1e30)
+    obs, actions = torch.randn(8, 3), torch.randn(8, 1)
+    loss, _ = ppo.ppo_loss(agent, obs, actions, torch.zeros(8), torch.randn(8), torch.randn(8), torch.randn(8), ppo.Args())
+    assert not torch.isfinite(loss)
