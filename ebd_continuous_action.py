@@ -1,0 +1,754 @@
+# EBD, exploration by disagreement (Pathak, Gandhi and Gupta 2019, "Self-Supervised Exploration via
+# Disagreement", https://arxiv.org/abs/1906.04161), on this repository's PPO (ppo_continuous_action.py), an
+# exploration baseline of the OPARL paper (Section 5.2; the paper names it EBD without a reference, and this
+# is the usual expansion). An ensemble of forward models predicts the next observation from the observation
+# and the action, each trained on its own bootstrap sample; the variance of their predictions is an intrinsic
+# reward. Everything around the bonus is built as in rnd_continuous_action.py (own observation statistics, a
+# second value head, non-episodic intrinsic GAE), so that the two baselines differ only in their bonus.
+# `diff ppo_continuous_action.py ebd_continuous_action.py` shows exactly what EBD adds to PPO.
+import difflib
+import math
+import os
+import random
+import sys
+import time
+from dataclasses import dataclass
+from typing import Optional
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.optim as optim
+import tyro
+from torch.distributions.normal import Normal
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
+
+
+@dataclass
+class Args:
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment"""
+    seed: int = 1
+    """seed of the experiment"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=False`"""
+    cuda: bool = True
+    """if toggled, cuda will be enabled by default (falls back to the CPU when no GPU is found)"""
+    track: bool = False
+    """if toggled, this experiment will be tracked with Weights and Biases"""
+    wandb_project_name: str = "cleanRL"
+    """the wandb's project name"""
+    wandb_entity: Optional[str] = None
+    """the entity (team) of wandb's project"""
+    capture_video: bool = False
+    """whether to record videos of evaluation episodes into `videos/{run_name}` (headless: set MUJOCO_GL=egl)"""
+    save_model: bool = False
+    """whether to save the agent and its normalisation statistics into the `runs/{run_name}` folder"""
+    run_name: Optional[str] = None
+    """name of the run folder under runs/ (default: {env_id}__{exp_name}__{seed}__{unix time})"""
+    checkpoint_frequency: int = 0
+    """write `checkpoint.pt` into the run folder at the first episode end after every this many steps, and at the end (0: never)"""
+    resume: Optional[str] = None
+    """continue the run in this folder (e.g. runs/{run_name}) from its checkpoint; flags given with it must match the run's"""
+
+    # Algorithm specific arguments
+    env_id: str = "Hopper-v4"
+    """the id of the environment: a Gymnasium id (Hopper-v4, ...) or dm_control/<domain>-<task>-v0"""
+    total_timesteps: int = 1000000
+    """total timesteps of the experiments"""
+    learning_rate: float = 3e-4
+    """the learning rate of the optimizer"""
+    num_steps: int = 2048
+    """the number of steps to run per policy rollout"""
+    anneal_lr: bool = True
+    """Toggle learning rate annealing for policy and value networks"""
+    gamma: float = 0.99
+    """the discount factor gamma"""
+    gae_lambda: float = 0.95
+    """the lambda for the general advantage estimation"""
+    num_minibatches: int = 32
+    """the number of mini-batches"""
+    update_epochs: int = 10
+    """the K epochs to update the policy"""
+    norm_adv: bool = True
+    """Toggles advantages normalization"""
+    clip_coef: float = 0.2
+    """the surrogate clipping coefficient"""
+    clip_vloss: bool = True
+    """Toggles whether or not to use a clipped loss for the value function, as per the paper."""
+    ent_coef: float = 0.0
+    """coefficient of the entropy"""
+    vf_coef: float = 0.5
+    """coefficient of the value function"""
+    max_grad_norm: float = 0.5
+    """the maximum norm for the gradient clipping"""
+    target_kl: Optional[float] = None
+    """the target KL divergence threshold"""
+
+    # EBD arguments (the intrinsic ones as in rnd_continuous_action.py)
+    num_models: int = 5
+    """the number of forward models in the ensemble"""
+    int_coef: float = 1.0
+    """coefficient of the intrinsic advantage (advantage = ext_coef * A_ext + int_coef * A_int, as RND's)"""
+    ext_coef: float = 2.0
+    """coefficient of the extrinsic advantage"""
+    int_gamma: float = 0.99
+    """the discount factor of the intrinsic return"""
+    num_iterations_obs_norm_init: int = 1
+    """rollouts of --num-steps random actions that initialise the observation statistics before training (not counted in --total-timesteps, as in CleanRL)"""
+
+    # Evaluation (the metric the paper reports)
+    eval_frequency: int = 5000
+    """evaluate the deterministic policy (its mean action, with the training observation statistics) every this many steps"""
+    eval_episodes: int = 10
+    """the number of episodes per evaluation"""
+
+
+def fail(message: str):
+    """Stop with one line on stderr and exit status 1, no traceback."""
+    raise SystemExit("error: " + " ".join(message.split()))
+
+
+def check_args(args: Args):
+    checks = [
+        (args.total_timesteps > 0, f"--total-timesteps must be > 0, got {args.total_timesteps}"),
+        (args.num_steps > 0, f"--num-steps must be > 0, got {args.num_steps}"),
+        (
+            args.total_timesteps >= args.num_steps,
+            f"--total-timesteps ({args.total_timesteps}) must be >= --num-steps ({args.num_steps}), one rollout",
+        ),
+        (
+            1 <= args.num_minibatches <= args.num_steps,
+            f"--num-minibatches must be in [1, --num-steps ({args.num_steps})], got {args.num_minibatches}",
+        ),
+        (args.update_epochs > 0, f"--update-epochs must be > 0, got {args.update_epochs}"),
+        (args.learning_rate > 0, f"--learning-rate must be > 0, got {args.learning_rate}"),
+        (0 <= args.gamma <= 1, f"--gamma must be in [0, 1], got {args.gamma}"),
+        (0 <= args.gae_lambda <= 1, f"--gae-lambda must be in [0, 1], got {args.gae_lambda}"),
+        (args.clip_coef > 0, f"--clip-coef must be > 0, got {args.clip_coef}"),
+        (args.ent_coef >= 0, f"--ent-coef must be >= 0, got {args.ent_coef}"),
+        (args.vf_coef >= 0, f"--vf-coef must be >= 0, got {args.vf_coef}"),
+        (args.max_grad_norm > 0, f"--max-grad-norm must be > 0, got {args.max_grad_norm}"),
+        (args.target_kl is None or args.target_kl > 0, f"--target-kl must be > 0, got {args.target_kl}"),
+        (args.eval_frequency > 0, f"--eval-frequency must be > 0, got {args.eval_frequency}"),
+        (args.eval_episodes > 0, f"--eval-episodes must be > 0, got {args.eval_episodes}"),
+        (args.checkpoint_frequency >= 0, f"--checkpoint-frequency must be >= 0, got {args.checkpoint_frequency}"),
+        (args.num_models >= 2, f"--num-models must be >= 2 (a disagreement needs two), got {args.num_models}"),
+        (args.int_coef >= 0, f"--int-coef must be >= 0, got {args.int_coef}"),
+        (args.ext_coef >= 0, f"--ext-coef must be >= 0, got {args.ext_coef}"),
+        (0 <= args.int_gamma <= 1, f"--int-gamma must be in [0, 1], got {args.int_gamma}"),
+        (args.num_iterations_obs_norm_init >= 0, f"--num-iterations-obs-norm-init must be >= 0, got {args.num_iterations_obs_norm_init}"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            fail(message)
+
+
+def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
+    return gym.spaces.Box(space.low.astype(np.float32), space.high.astype(np.float32), dtype=np.float32)
+
+
+def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_every: int = 1):
+    """One environment with a flat float32 observation and a float32 Box action space.
+
+    A plain (not vectorised) env: the loop sees the true final observation of every episode and
+    resets itself, so no autoreset step can end up in the replay buffer."""
+    if env_id.startswith("dm_control/"):
+        import shimmy  # registers the DeepMind Control tasks as dm_control/<domain>-<task>-v0
+
+        gym.register_envs(shimmy)
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
+        hint = f"did you mean {', '.join(close)}?" if close else "use e.g. Hopper-v4 or dm_control/cartpole-swingup-v0"
+        fail(f"unknown --env-id {env_id!r}; {hint}")
+    try:
+        env = gym.make(env_id, render_mode="rgb_array" if video_folder else None)
+    except Exception as e:  # a registered id whose dependencies are missing, e.g. Hopper-v3 (mujoco-py)
+        fail(f"could not create --env-id {env_id!r}: {type(e).__name__}: {e}")
+    if not isinstance(env.action_space, gym.spaces.Box):
+        fail(f"--env-id {env_id!r} has a {type(env.action_space).__name__} action space; only continuous (Box) actions are supported")
+    if not (np.isfinite(env.action_space.low).all() and np.isfinite(env.action_space.high).all()):
+        fail(f"--env-id {env_id!r} has unbounded actions; the policies here act within finite bounds")
+    if isinstance(env.observation_space, gym.spaces.Dict):  # DeepMind Control observations are dicts of arrays
+        env = gym.wrappers.FlattenObservation(env)
+    env = gym.wrappers.TransformObservation(env, lambda obs: obs.astype(np.float32), float32_box(env.observation_space))
+    if env.action_space.dtype != np.float32:  # DeepMind Control declares float64 actions
+        to_env_dtype = lambda action, dtype=env.action_space.dtype: np.asarray(action, dtype=dtype)  # noqa: E731
+        env = gym.wrappers.TransformAction(env, to_env_dtype, float32_box(env.action_space))
+    env = gym.wrappers.RecordEpisodeStatistics(env)
+    if video_folder:
+        env = gym.wrappers.RecordVideo(env, video_folder, episode_trigger=lambda episode: episode % video_every == 0)
+    env.action_space.seed(seed)
+    return env
+
+
+# ALGO LOGIC: initialize agent here:
+def layer_init(layer, std=np.sqrt(2), bias_const=0.0):
+    torch.nn.init.orthogonal_(layer.weight, std)
+    torch.nn.init.constant_(layer.bias, bias_const)
+    return layer
+
+
+class Agent(nn.Module):
+    def __init__(self, obs_dim: int, action_dim: int):
+        super().__init__()
+        self.critic = nn.Sequential(
+            layer_init(nn.Linear(obs_dim, 64)),
+            nn.Tanh(),
+            layer_init(nn.Linear(64, 64)),
+            nn.Tanh(),
+        )
+        # one head for the extrinsic return, one for the intrinsic return (CleanRL's critic_ext and critic_int)
+        self.critic_ext = layer_init(nn.Linear(64, 1), std=1.0)
+        self.critic_int = layer_init(nn.Linear(64, 1), std=1.0)
+        self.actor_mean = nn.Sequential(
+            layer_init(nn.Linear(obs_dim, 64)),
+            nn.Tanh(),
+            layer_init(nn.Linear(64, 64)),
+            nn.Tanh(),
+            layer_init(nn.Linear(64, action_dim), std=0.01),
+        )
+        self.actor_logstd = nn.Parameter(torch.zeros(action_dim))
+
+    def get_value(self, x):
+        hidden = self.critic(x)
+        return self.critic_ext(hidden).squeeze(-1), self.critic_int(hidden).squeeze(-1)
+
+    def get_action_and_value(self, x, action=None):
+        action_mean = self.actor_mean(x)
+        action_std = torch.exp(self.actor_logstd.expand_as(action_mean))
+        # unvalidated: a collapsed std becomes a non-finite loss, which the NaN guard reports with its step
+        probs = Normal(action_mean, action_std, validate_args=False)
+        if action is None:
+            action = probs.sample()
+        return action, probs.log_prob(action).sum(-1), probs.entropy().sum(-1), *self.get_value(x)
+
+
+class ForwardModels(nn.Module):
+    """`num_models` forward models (normalised observation, action) -> normalised next observation, as one
+    batched MLP (a [num_models, in, out] weight per layer, 256 units as the off-policy scripts' networks).
+    Each member is initialised on its own (nn.Linear's default distribution), so the members disagree where
+    no data has pulled them together."""
+
+    def __init__(self, num_models: int, obs_dim: int, action_dim: int, hidden: int = 256):
+        super().__init__()
+        sizes = [obs_dim + action_dim, hidden, hidden, obs_dim]
+        self.num_models = num_models
+        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
+        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+            bound = 1 / math.sqrt(fan_in)
+            self.weights.append(nn.Parameter(torch.empty(num_models, fan_in, fan_out).uniform_(-bound, bound)))
+            self.biases.append(nn.Parameter(torch.empty(num_models, 1, fan_out).uniform_(-bound, bound)))
+
+    def forward(self, x):
+        """x: [num_models, batch, in], each member its own batch -> [num_models, batch, obs_dim]."""
+        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
+            x = torch.baddbmm(bias, x, weight)
+            if i < len(self.weights) - 1:
+                x = torch.relu(x)
+        return x
+
+
+def disagreement(forward_models: ForwardModels, inputs):
+    """The raw intrinsic reward of each transition (Pathak et al. 2019): the variance across the members of
+    their predicted next observation, averaged over its features."""
+    predictions = forward_models(inputs.expand(forward_models.num_models, *inputs.shape))
+    return predictions.var(0, correction=0).mean(-1)
+
+
+def forward_model_loss(forward_models: ForwardModels, inputs, targets, member_samples):
+    """The members' mean squared error, member k on the transitions member_samples[k], its bootstrap sample."""
+    return (forward_models(inputs[member_samples]) - targets[member_samples]).pow(2).mean()
+
+
+class RunningMeanStd:
+    """Running mean and variance of a stream, updated one sample at a time, as Gymnasium's
+    NormalizeObservation and NormalizeReward keep them (parallel-variance update, count from 1e-4)."""
+
+    def __init__(self, shape=()):
+        self.mean, self.var, self.count = np.zeros(shape), np.ones(shape), 1e-4
+
+    def update(self, x):
+        delta = x - self.mean
+        total = self.count + 1
+        self.mean = self.mean + delta / total
+        self.var = (self.var * self.count + delta**2 * self.count / total) / total
+        self.count = total
+
+    def update_batch(self, batch):
+        """The same update from a whole batch at once (parallel variance, as CleanRL's update_from_moments)."""
+        batch_mean, batch_var, n = batch.mean(0), batch.var(0), len(batch)
+        delta, total = batch_mean - self.mean, self.count + n
+        self.mean = self.mean + delta * n / total
+        self.var = (self.var * self.count + batch_var * n + delta**2 * self.count * n / total) / total
+        self.count = total
+
+
+class Normalizer:
+    """CleanRL's PPO wrappers (NormalizeObservation, clip to +-10, NormalizeReward, clip to +-10) as one
+    object, so that evaluation uses the training statistics and checkpoints can hold them."""
+
+    def __init__(self, obs_dim: int, gamma: float):
+        self.obs_rms, self.return_rms = RunningMeanStd((obs_dim,)), RunningMeanStd()
+        self.gamma, self.discounted_return = gamma, 0.0
+
+    def observation(self, obs, update: bool = True) -> np.ndarray:
+        if update:
+            self.obs_rms.update(obs)
+        return np.clip((obs - self.obs_rms.mean) / np.sqrt(self.obs_rms.var + 1e-8), -10, 10).astype(np.float32)
+
+    def reward(self, reward: float, terminated: bool) -> float:
+        # scaled by the std of a discounted return (not centred), as Gymnasium's NormalizeReward
+        self.discounted_return = self.discounted_return * self.gamma * (1 - terminated) + reward
+        self.return_rms.update(self.discounted_return)
+        return float(np.clip(reward / np.sqrt(self.return_rms.var + 1e-8), -10, 10))
+
+    def state_dict(self) -> dict:
+        return {
+            "obs": [torch.from_numpy(self.obs_rms.mean), torch.from_numpy(self.obs_rms.var), self.obs_rms.count],
+            "return": [float(self.return_rms.mean), float(self.return_rms.var), self.return_rms.count],
+            "discounted_return": float(self.discounted_return),
+        }
+
+    def load_state_dict(self, state: dict):
+        mean, var, self.obs_rms.count = state["obs"]
+        self.obs_rms.mean, self.obs_rms.var = mean.numpy().astype(np.float64), var.numpy().astype(np.float64)
+        self.return_rms.mean, self.return_rms.var, self.return_rms.count = state["return"]
+        self.discounted_return = state["discounted_return"]
+
+
+class IntrinsicNormalizer:
+    """EBD's own statistics, as RND's (CleanRL's obs_rms, RewardForwardFilter and reward_rms): observations normalised by
+    their running mean and std and clipped to [-5, 5], updated once per rollout; intrinsic rewards divided by
+    the running std of their discounted sum, which runs on across episode ends (the intrinsic return is
+    non-episodic)."""
+
+    def __init__(self, obs_dim: int, int_gamma: float):
+        self.obs_rms, self.int_rms = RunningMeanStd((obs_dim,)), RunningMeanStd()
+        self.int_gamma, self.discounted_int = int_gamma, 0.0
+
+    def observation(self, obs: torch.Tensor) -> torch.Tensor:
+        mean = torch.as_tensor(self.obs_rms.mean, dtype=obs.dtype, device=obs.device)
+        std = torch.as_tensor(np.sqrt(self.obs_rms.var + 1e-8), dtype=obs.dtype, device=obs.device)
+        return ((obs - mean) / std).clamp(-5, 5)
+
+    def intrinsic(self, rewards: torch.Tensor) -> torch.Tensor:
+        """One rollout's raw intrinsic rewards, divided by the std of the discounted intrinsic return."""
+        discounted = np.zeros(len(rewards))
+        for t, reward in enumerate(rewards.tolist()):
+            self.discounted_int = self.discounted_int * self.int_gamma + reward
+            discounted[t] = self.discounted_int
+        self.int_rms.update_batch(discounted)
+        return rewards / float(np.sqrt(self.int_rms.var + 1e-8))
+
+    def state_dict(self) -> dict:
+        return {
+            "obs": [torch.from_numpy(self.obs_rms.mean), torch.from_numpy(self.obs_rms.var), self.obs_rms.count],
+            "int": [float(self.int_rms.mean), float(self.int_rms.var), self.int_rms.count],
+            "discounted_int": float(self.discounted_int),
+        }
+
+    def load_state_dict(self, state: dict):
+        mean, var, self.obs_rms.count = state["obs"]
+        self.obs_rms.mean, self.obs_rms.var = mean.numpy().astype(np.float64), var.numpy().astype(np.float64)
+        self.int_rms.mean, self.int_rms.var, self.int_rms.count = state["int"]
+        self.discounted_int = state["discounted_int"]
+
+
+class Rollout:
+    """One rollout of num_steps transitions in preallocated tensors. `episode_ends[t]` marks a step that
+    ended an episode (terminated or truncated); a truncated step's bootstrap value is in its reward.
+    `raw_obs` and `raw_next_obs` hold the observations as the env gave them, for the forward models."""
+
+    def __init__(self, num_steps: int, obs_dim: int, action_dim: int, device: torch.device):
+        self.obs = torch.zeros((num_steps, obs_dim), device=device)
+        self.actions, self.raw_obs, self.raw_next_obs = torch.zeros((num_steps, action_dim), device=device), torch.zeros((num_steps, obs_dim), device=device), torch.zeros((num_steps, obs_dim), device=device)
+        self.logprobs, self.rewards, self.episode_ends, self.values, self.int_values = (torch.zeros(num_steps, device=device) for _ in range(5))
+
+    def fields(self) -> dict:
+        return {"obs": self.obs, "actions": self.actions, "logprobs": self.logprobs, "rewards": self.rewards, "episode_ends": self.episode_ends, "values": self.values, "int_values": self.int_values, "raw_obs": self.raw_obs, "raw_next_obs": self.raw_next_obs}
+
+
+def compute_gae(rewards, values, episode_ends, next_value, gamma: float, gae_lambda: float):
+    """GAE(lambda) advantages and returns of one rollout; nothing flows across an episode end."""
+    advantages = torch.zeros_like(rewards)
+    last_advantage = 0.0
+    for t in reversed(range(len(rewards))):
+        next_values = next_value if t == len(rewards) - 1 else values[t + 1]
+        nonterminal = 1.0 - episode_ends[t]
+        delta = rewards[t] + gamma * next_values * nonterminal - values[t]
+        advantages[t] = last_advantage = delta + gamma * gae_lambda * nonterminal * last_advantage
+    return advantages, advantages + values
+
+
+def advantages_and_returns(rollout: Rollout, int_rewards, next_values, args: Args):
+    """The advantage PPO follows, ext_coef * A_ext + int_coef * A_int, and both returns. The extrinsic GAE
+    stops at episode ends as PPO's; the intrinsic one does not (no episode end is marked): novelty is a
+    stream over the agent's lifetime, and an episode's end should not look rewarding or costly to it
+    (Burda et al. 2019, Section 2.3)."""
+    next_ext_value, next_int_value = next_values
+    ext_advantages, ext_returns = compute_gae(rollout.rewards, rollout.values, rollout.episode_ends, next_ext_value, args.gamma, args.gae_lambda)
+    int_advantages, int_returns = compute_gae(int_rewards, rollout.int_values, torch.zeros_like(rollout.episode_ends), next_int_value, args.int_gamma, args.gae_lambda)
+    return args.ext_coef * ext_advantages + args.int_coef * int_advantages, ext_returns, int_returns
+
+
+def ppo_loss(agent: Agent, obs, actions, old_logprobs, advantages, returns, old_values, int_returns, args: Args):
+    """The clipped surrogate objective, the (clipped) value loss of both heads and the entropy bonus of one minibatch."""
+    _, newlogprob, entropy, newvalue, new_int_value = agent.get_action_and_value(obs, actions)
+    logratio = newlogprob - old_logprobs
+    ratio = logratio.exp()
+    if args.norm_adv:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+    # Policy loss
+    pg_loss = torch.max(-advantages * ratio, -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)).mean()
+
+    # Value loss
+    if args.clip_vloss:
+        v_clipped = old_values + torch.clamp(newvalue - old_values, -args.clip_coef, args.clip_coef)
+        v_loss = 0.5 * torch.max((newvalue - returns) ** 2, (v_clipped - returns) ** 2).mean()
+    else:
+        v_loss = 0.5 * ((newvalue - returns) ** 2).mean()
+    v_loss = v_loss + 0.5 * ((new_int_value - int_returns) ** 2).mean()  # the intrinsic head, unclipped as in CleanRL
+
+    entropy_loss = entropy.mean()
+    loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef
+    with torch.no_grad():  # http://joschu.net/blog/kl-approx.html
+        stats = {
+            "policy_loss": pg_loss,
+            "value_loss": v_loss,
+            "entropy": entropy_loss,
+            "old_approx_kl": (-logratio).mean(),
+            "approx_kl": ((ratio - 1) - logratio).mean(),
+            "clipfrac": ((ratio - 1.0).abs() > args.clip_coef).float().mean(),
+        }
+    return loss, stats
+
+
+class NonFiniteError(Exception):
+    """A loss became NaN or infinite; raised before the optimizer step it would have poisoned."""
+
+
+def check_finite(value: torch.Tensor, name: str):
+    if not torch.isfinite(value):
+        raise NonFiniteError(name)
+
+
+def update_policy(rollout: Rollout, advantages, returns, int_returns, model_inputs, model_targets, agent: Agent, forward_models: ForwardModels, optimizer, args: Args) -> dict:
+    """update_epochs passes over the rollout in num_minibatches shuffled minibatches; the forward models learn
+    in the same steps through the same optimizer (as RND's predictor), each on its bootstrap sample."""
+    minibatch_size = args.num_steps // args.num_minibatches
+    # member k's bootstrap sample of this rollout: num_steps transitions drawn with replacement
+    member_samples = torch.randint(args.num_steps, (args.num_models, args.num_steps), device=advantages.device)
+    clipfracs = []
+    for epoch in range(args.update_epochs):
+        order = torch.randperm(args.num_steps, device=advantages.device)
+        for start in range(0, minibatch_size * args.num_minibatches, minibatch_size):
+            mb = order[start : start + minibatch_size]
+            loss, stats = ppo_loss(agent, rollout.obs[mb], rollout.actions[mb], rollout.logprobs[mb], advantages[mb], returns[mb], rollout.values[mb], int_returns[mb], args)
+            model_loss = forward_model_loss(forward_models, model_inputs, model_targets, member_samples[:, mb])
+            loss, stats["forward_model_loss"] = loss + model_loss, model_loss.detach()
+            check_finite(loss, "loss")
+            optimizer.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], args.max_grad_norm)
+            optimizer.step()
+            clipfracs.append(stats["clipfrac"])
+        if args.target_kl is not None and stats["approx_kl"] > args.target_kl:
+            break
+    return {**stats, "clipfrac": torch.stack(clipfracs).mean()}
+
+
+@torch.no_grad()
+def evaluate(agent: Agent, normalizer: Normalizer, env: gym.Env, num_episodes: int, seed: int) -> np.ndarray:
+    """Undiscounted returns of `num_episodes` episodes of the policy's mean action, clipped to the bounds,
+    on observations normalised with the training statistics (not updated). The env is re-seeded each
+    time, so every evaluation sees the same start states."""
+    device = agent.actor_logstd.device
+    returns = np.zeros(num_episodes)
+    obs, _ = env.reset(seed=seed)
+    for episode in range(num_episodes):
+        if episode > 0:
+            obs, _ = env.reset()
+        done = False
+        while not done:
+            action = agent.actor_mean(torch.as_tensor(normalizer.observation(obs, update=False), device=device)).cpu().numpy()
+            obs, reward, terminated, truncated, _ = env.step(action.clip(env.action_space.low, env.action_space.high))
+            returns[episode] += reward
+            done = terminated or truncated
+    return returns
+
+
+# Checkpoints: everything needed to continue a run exactly. They are taken at episode boundaries,
+# where an environment holds no state but its random generators, so any env can be resumed.
+CHECKPOINT = "checkpoint.pt"
+# flags that may differ between a run and its resumption: they don't change what is learned
+RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda"}
+
+
+def rng_state(rng) -> dict:
+    """A numpy Generator's or RandomState's (dm_control's) state, in types `weights_only` loading accepts."""
+    if isinstance(rng, np.random.RandomState):
+        name, key, pos, has_gauss, gauss = rng.get_state()
+        return {"legacy": (name, torch.from_numpy(key.astype(np.int64)), pos, has_gauss, gauss)}
+    return {"generator": rng.bit_generator.state}
+
+
+def set_rng_state(rng, state: dict):
+    if "legacy" in state:
+        name, key, pos, has_gauss, gauss = state["legacy"]
+        rng.set_state((name, key.numpy().astype(np.uint32), pos, has_gauss, gauss))
+    else:
+        rng.bit_generator.state = state["generator"]
+
+
+def write_checkpoint(path: str, state: dict):
+    """Write atomically: a kill during the write leaves the previous file intact."""
+    torch.save(state, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_checkpoint(run_dir: str) -> dict:
+    path = os.path.join(run_dir, CHECKPOINT)
+    if not os.path.isdir(run_dir):
+        fail(f"--resume {run_dir}: no such run folder")
+    if not os.path.isfile(path):
+        fail(f"--resume {run_dir}: it holds no {CHECKPOINT} (write one with --checkpoint-frequency N)")
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as e:  # truncated, foreign or corrupt files all land here
+        fail(f"{path} is not a readable checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'no detail'})")
+    script = os.path.basename(__file__)
+    if not isinstance(checkpoint, dict) or checkpoint.get("script") != script:
+        found = checkpoint.get("script") if isinstance(checkpoint, dict) else None
+        fail(f"{path} was not written by {script} (written by {found or 'something else'})")
+    return checkpoint
+
+
+def parse_args(argv=None) -> Args:
+    args = tyro.cli(Args, args=argv)
+    if args.resume:  # the run's own flags become the defaults, so only flags given now can differ
+        args = tyro.cli(Args, args=argv, default=Args(**load_checkpoint(args.resume)["args"]))
+    return args
+
+
+def main(args: Args):
+    check_args(args)
+    checkpoint = load_checkpoint(args.resume) if args.resume else None
+    if checkpoint:
+        differing = [k for k, v in checkpoint["args"].items() if k not in RESUMABLE_FLAGS and getattr(args, k) != v]
+        if differing:
+            flags = ", ".join(f"--{k.replace('_', '-')} {getattr(args, k)} (run: {checkpoint['args'][k]})" for k in differing)
+            fail(f"--resume {args.resume}: {flags}; a resumed run keeps its hyperparameters")
+        run_dir = os.path.normpath(args.resume)
+        run_name = os.path.basename(run_dir)
+        if checkpoint["global_step"] >= args.total_timesteps:
+            print(f"{run_dir} had already finished its {args.total_timesteps} steps")
+            return {"run_dir": run_dir, "eval_returns": checkpoint["eval_returns"]}
+    else:
+        run_name = args.run_name or f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
+        run_dir = os.path.join("runs", run_name)
+
+    # TRY NOT TO MODIFY: seeding
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
+        os.environ.setdefault("MUJOCO_GL", "disable")
+
+    # env setup: the evaluation env is seeded apart from the training env
+    env = make_env(args.env_id, args.seed)
+    eval_seed = args.seed + 100
+    video_folder = f"videos/{run_name}" if args.capture_video else None
+    eval_env = make_env(args.env_id, eval_seed, video_folder, video_every=args.eval_episodes)
+    obs_dim = int(np.prod(env.observation_space.shape))
+    action_dim = int(np.prod(env.action_space.shape))
+
+    agent = Agent(obs_dim, action_dim).to(device)
+    forward_models = ForwardModels(args.num_models, obs_dim, action_dim).to(device)
+    optimizer = optim.Adam([*agent.parameters(), *forward_models.parameters()], lr=args.learning_rate, eps=1e-5)
+    action_low, action_high = (torch.as_tensor(bound, device=device) for bound in (env.action_space.low, env.action_space.high))
+    normalizer = Normalizer(obs_dim, args.gamma)
+    intrinsic_normalizer = IntrinsicNormalizer(obs_dim, args.int_gamma)
+    rollout = Rollout(args.num_steps, obs_dim, action_dim, device)
+    num_iterations = args.total_timesteps // args.num_steps  # a last partial rollout is collected but not learned from
+
+    eval_returns = []  # (step, mean return) of every evaluation
+
+    def snapshot(next_step: int) -> dict:
+        return {
+            "script": os.path.basename(__file__),
+            "args": vars(args),
+            "global_step": next_step,
+            "eval_returns": eval_returns,
+            "nets": {"agent": agent.state_dict(), "forward_models": forward_models.state_dict()},
+            "optimizers": {"optimizer": optimizer.state_dict()},
+            "rollout": {name: t.cpu().clone() for name, t in rollout.fields().items()},
+            "normalizer": normalizer.state_dict(),
+            "intrinsic_normalizer": intrinsic_normalizer.state_dict(),
+            "rng": {
+                "python": random.getstate(),
+                "numpy": rng_state(np.random.mtrand._rand),
+                "torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state_all() if device.type == "cuda" else [],
+                "action_space": rng_state(env.action_space.np_random),
+                "env": rng_state(env.unwrapped.np_random),
+            },
+        }
+
+    start_step = 0
+    if checkpoint:
+        start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
+        agent.load_state_dict(checkpoint["nets"]["agent"])
+        forward_models.load_state_dict(checkpoint["nets"]["forward_models"])
+        optimizer.load_state_dict(checkpoint["optimizers"]["optimizer"])
+        for name, t in rollout.fields().items():
+            t.copy_(checkpoint["rollout"][name])
+        normalizer.load_state_dict(checkpoint["normalizer"])
+        intrinsic_normalizer.load_state_dict(checkpoint["intrinsic_normalizer"])
+        rng = checkpoint["rng"]
+        random.setstate(rng["python"])
+        set_rng_state(np.random.mtrand._rand, rng["numpy"])
+        torch.set_rng_state(rng["torch"])
+        if rng["cuda"]:
+            torch.cuda.set_rng_state_all(rng["cuda"])
+        set_rng_state(env.action_space.np_random, rng["action_space"])
+        set_rng_state(env.unwrapped.np_random, rng["env"])
+
+    if args.track:
+        try:
+            import wandb
+        except ImportError:
+            fail("--track needs Weights and Biases: pip install wandb")
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=run_name,
+            monitor_gym=True,
+            save_code=True,
+        )
+    # a resumed run hides what the killed process logged after its checkpoint
+    writer = SummaryWriter(run_dir, purge_step=start_step if checkpoint else None)
+    if not checkpoint:
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+        )
+
+    def run_evaluation(step: int):
+        returns = evaluate(agent, normalizer, eval_env, args.eval_episodes, eval_seed)
+        eval_returns.append((step, float(returns.mean())))
+        writer.add_scalar("eval/episodic_return", returns.mean(), step)
+        pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
+        tqdm.write(f"step {step}/{args.total_timesteps}: eval return {returns.mean():.1f} +- {returns.std():.1f}, {sps:.0f} steps/s")
+
+    if not checkpoint:  # CleanRL's warm-up: the observation statistics start from random actions' observations
+        env.reset(seed=args.seed)
+        warmup_obs = []
+        for _ in range(args.num_iterations_obs_norm_init * args.num_steps):
+            raw_obs, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            warmup_obs.append(raw_obs)
+            if terminated or truncated:
+                env.reset()
+        if warmup_obs:
+            intrinsic_normalizer.obs_rms.update_batch(np.array(warmup_obs, dtype=np.float64))
+
+    # the bar goes to a terminal; in a log file the per-evaluation lines say the same
+    pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
+    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}" + (f", resumed at step {start_step}" if checkpoint else ""))
+    sps_time, sps_step, sps = time.time(), start_step, 0.0
+    next_checkpoint = start_step + args.checkpoint_frequency
+
+    # TRY NOT TO MODIFY: start the game
+    obs = None  # None: an episode starts at this step
+    for global_step in range(start_step, args.total_timesteps):
+        if global_step % args.eval_frequency == 0:
+            run_evaluation(global_step)
+            sps_time = time.time()
+        if obs is None:
+            raw_obs, _ = env.reset(seed=args.seed if global_step == 0 else None)
+            obs = torch.as_tensor(normalizer.observation(raw_obs), device=device)
+            model_obs = torch.as_tensor(raw_obs, device=device)
+        step_in_rollout = global_step % args.num_steps
+        iteration = global_step // args.num_steps + 1
+        if step_in_rollout == 0 and args.anneal_lr:  # Annealing the rate if instructed to do so.
+            optimizer.param_groups[0]["lr"] = (1.0 - (iteration - 1.0) / num_iterations) * args.learning_rate
+
+        # ALGO LOGIC: action logic
+        with torch.no_grad():
+            action, logprob, _, value, int_value = agent.get_action_and_value(obs)
+
+        # TRY NOT TO MODIFY: execute the game and log data.
+        next_raw_obs, reward, terminated, truncated, info = env.step(action.cpu().numpy().clip(env.action_space.low, env.action_space.high))
+        next_obs = torch.as_tensor(normalizer.observation(next_raw_obs), device=device)
+        reward = normalizer.reward(reward, terminated)
+        if truncated and not terminated:  # a time-limit cut: the value of the last observation stands in for the rest
+            with torch.no_grad():
+                reward += args.gamma * agent.get_value(next_obs)[0].item()
+        raw_next_obs = torch.as_tensor(next_raw_obs, device=device)
+        for name, value_t in [("obs", obs), ("actions", action), ("logprobs", logprob), ("rewards", reward), ("episode_ends", float(terminated or truncated)), ("values", value), ("int_values", int_value), ("raw_obs", model_obs), ("raw_next_obs", raw_next_obs)]:
+            rollout.fields()[name][step_in_rollout] = value_t
+        obs, model_obs = next_obs, raw_next_obs
+        if terminated or truncated:
+            writer.add_scalar("charts/episodic_return", info["episode"]["r"], global_step)
+            writer.add_scalar("charts/episodic_length", info["episode"]["l"], global_step)
+            obs = None
+
+        # ALGO LOGIC: training, once a rollout is full
+        if step_in_rollout == args.num_steps - 1 and iteration <= num_iterations:
+            with torch.no_grad():
+                # the members' disagreement on this rollout's transitions (the executed, clipped actions), with the statistics before it
+                executed = rollout.actions.clamp(action_low, action_high)
+                int_rewards = intrinsic_normalizer.intrinsic(disagreement(forward_models, torch.cat([intrinsic_normalizer.observation(rollout.raw_obs), executed], -1)))
+                # after an episode end the extrinsic next value is not used; the intrinsic stream continues from it
+                advantages, returns, int_returns = advantages_and_returns(rollout, int_rewards, agent.get_value(next_obs), args)
+            intrinsic_normalizer.obs_rms.update_batch(rollout.raw_next_obs.double().cpu().numpy())
+            # the forward models learn on the updated statistics, as RND's predictor
+            model_inputs = torch.cat([intrinsic_normalizer.observation(rollout.raw_obs), executed], -1)
+            model_targets = intrinsic_normalizer.observation(rollout.raw_next_obs)
+            try:
+                stats = update_policy(rollout, advantages, returns, int_returns, model_inputs, model_targets, agent, forward_models, optimizer, args)
+            except NonFiniteError as quantity:
+                path = os.path.join(run_dir, "last_good_state.pt")
+                write_checkpoint(path, snapshot(global_step))
+                fail(f"{quantity} became non-finite at step {global_step} (try a smaller --learning-rate); the last finite state is in {path}")
+            var_y = returns.var()
+            explained_var = (1 - (returns - rollout.values).var() / var_y).item() if var_y > 0 else float("nan")
+            writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
+            for name, value_t in stats.items():
+                writer.add_scalar(f"losses/{name}", value_t.item(), global_step)
+            writer.add_scalar("losses/explained_variance", explained_var, global_step)
+            writer.add_scalar("charts/intrinsic_reward", int_rewards.mean().item(), global_step)
+
+        if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded
+            sps = (global_step + 1 - sps_step) / (time.time() - sps_time)
+            writer.add_scalar("charts/SPS", sps, global_step)
+            sps_time, sps_step = time.time(), global_step + 1
+        pbar.update(1)
+        if args.checkpoint_frequency and obs is None and global_step + 1 >= next_checkpoint:
+            write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(global_step + 1))
+            next_checkpoint = global_step + 1 + args.checkpoint_frequency
+
+    run_evaluation(args.total_timesteps)
+    if args.checkpoint_frequency:
+        write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(args.total_timesteps))
+    pbar.close()
+    if args.save_model:
+        model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
+        torch.save({"actor": agent.state_dict(), "normalizer": normalizer.state_dict(), "forward_models": forward_models.state_dict()}, model_path)
+        tqdm.write(f"model saved to {model_path}")
+    env.close()
+    eval_env.close()
+    writer.close()
+    return {"actor": agent, "agent": agent, "normalizer": normalizer, "forward_models": forward_models, "intrinsic_normalizer": intrinsic_normalizer, "run_dir": run_dir, "eval_returns": eval_returns, "optimizer": optimizer}
+
+
+if __name__ == "__main__":
+    main(parse_args())
