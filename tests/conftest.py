@@ -10,10 +10,12 @@ sys.path.insert(0, REPO)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 # the algorithm scripts, by short name; every script-level test runs on each of them
-SCRIPTS = ["td3", "oparl", "sac", "redq", "ppo"]
+SCRIPTS = ["td3", "oparl", "sac", "redq", "ppo", "rnd", "ebd"]
 OFF_POLICY = ["td3", "oparl", "sac", "redq"]  # the scripts with a replay buffer
+ON_POLICY = ["ppo", "rnd", "ebd"]  # PPO and the exploration methods built on it
 # what keeps each script's test runs short, beyond fewer steps
-QUICK = {"redq": {"utd_ratio": 2}, "ppo": {"num_steps": 256, "num_minibatches": 4, "update_epochs": 2}}
+SHORT_ROLLOUTS = {"num_steps": 256, "num_minibatches": 4, "update_epochs": 2}
+QUICK = {"redq": {"utd_ratio": 2}, **{script: SHORT_ROLLOUTS for script in ON_POLICY}}
 # settings that only the off-policy scripts have; dropped for the others
 OFF_POLICY_ONLY = {"learning_starts", "batch_size"}
 

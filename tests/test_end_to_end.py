@@ -6,16 +6,19 @@ import sys
 import pytest
 import torch
 
-from conftest import REPO, SCRIPTS, cli_flags, load, scalars, small_args
+from conftest import ON_POLICY, REPO, SCRIPTS, cli_flags, load, scalars, small_args
 
 COMMON_TAGS = {"eval/episodic_return", "charts/episodic_return", "charts/episodic_length", "charts/SPS"}
 CRITIC_TAGS = {"losses/qf_loss", "losses/qf_values"}
+PPO_TAGS = {"losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl", "losses/old_approx_kl", "losses/clipfrac", "losses/explained_variance", "charts/learning_rate"}
 # what each script logs beyond the common tags
 EXTRA_TAGS = {
     "td3": CRITIC_TAGS | {"losses/actor_loss"},
     "sac": CRITIC_TAGS | {"losses/actor_loss", "losses/alpha", "losses/alpha_loss"},
     "redq": CRITIC_TAGS | {"losses/actor_loss", "losses/alpha", "losses/alpha_loss"},
-    "ppo": {"losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl", "losses/old_approx_kl", "losses/clipfrac", "losses/explained_variance", "charts/learning_rate"},
+    "ppo": PPO_TAGS,
+    "rnd": PPO_TAGS | {"charts/intrinsic_reward", "losses/rnd_loss"},
+    "ebd": PPO_TAGS | {"charts/intrinsic_reward", "losses/forward_model_loss"},
     "oparl": CRITIC_TAGS | {"losses/pessimistic_actor_loss", "losses/optimistic_actor_loss", "charts/q_ensemble_std", "charts/optimistic_share", "charts/resets"},
 }
 
@@ -49,7 +52,7 @@ def test_save_model_writes_loadable_weights(script, tmp_path, monkeypatch):
     actor = result["actor"]
     for name, tensor in actor.state_dict().items():
         torch.testing.assert_close(saved["actor"][name], tensor)
-    assert ("normalizer" if script == "ppo" else "qf") in saved
+    assert ("normalizer" if script in ON_POLICY else "qf") in saved
 
 
 def run_script(script, *flags, env=None):

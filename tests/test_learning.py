@@ -13,6 +13,8 @@ BUDGETS = {
     "oparl": ("Pendulum-v1", 8000, 1000, -400.0),
     "sac": ("Pendulum-v1", 5000, 1000, -400.0),
     "ppo": ("InvertedPendulum-v4", 30000, None, 500.0),  # PPO's default rollouts of 2048 steps; 1000 is solved
+    "rnd": ("InvertedPendulum-v4", 30000, None, 500.0),  # the bonus must not keep PPO from a task it solves
+    "ebd": ("InvertedPendulum-v4", 30000, None, 500.0),
 }
 
 

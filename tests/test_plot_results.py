@@ -202,3 +202,10 @@ def test_selection_shapes_the_figures_but_the_csvs_keep_every_run(sweep, tmp_pat
     assert "oparl" not in open(os.path.join(out, "td3_table.md")).read()
     assert len(open(os.path.join(out, "final_returns.csv")).read().splitlines()) == 13
     assert not os.path.exists(os.path.join(out, "td3_final_returns.csv"))
+
+
+def test_each_paper_system_keeps_its_colour_and_other_names_take_the_free_ones():
+    assert pr.colors_of(["oparl", "rnd", "ebd"]) == {"oparl": "C0", "rnd": "C4", "ebd": "C5"}
+    assert pr.colors_of(["ebd", "ppo", "td3"]) == {"ebd": "C5", "ppo": "C3", "td3": "C1"}
+    # an ablation figure: OPARL keeps C0, its variants take C1, C2, ... in order
+    assert pr.colors_of(["oparl", "oparl_optimistic_only", "oparl_two_critics"]) == {"oparl": "C0", "oparl_optimistic_only": "C1", "oparl_two_critics": "C2"}

@@ -9,7 +9,7 @@ import time
 import pytest
 import torch
 
-from conftest import OFF_POLICY, REPO, SCRIPTS, cli_flags, load, scalars
+from conftest import OFF_POLICY, ON_POLICY, REPO, SCRIPTS, cli_flags, load, scalars
 
 
 def short(script):
@@ -37,6 +37,8 @@ KILL_CASES = [
     ("oparl", "dm_control/cartpole-swingup-v0"),
     ("redq", "dm_control/cartpole-swingup-v0"),
     ("ppo", "Hopper-v4"),
+    ("rnd", "Hopper-v4"),
+    ("ebd", "dm_control/cartpole-swingup-v0"),
 ]
 
 
@@ -60,7 +62,7 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
     full_log, resumed_log = scalars(str(tmp_path / "runs" / "full")), scalars(str(tmp_path / "runs" / "killed"))
     assert resumed_log["eval/episodic_return"] == full_log["eval/episodic_return"]
     assert [step for step, _ in resumed_log["eval/episodic_return"]] == [0, 500, 1000, 1500, 2000, 2500]
-    loss = "losses/value_loss" if script == "ppo" else "losses/qf_loss"
+    loss = "losses/value_loss" if script in ON_POLICY else "losses/qf_loss"
     assert resumed_log[loss] == full_log[loss]  # no step logged twice or lost
     full_actor, resumed_actor = final_actor(tmp_path / "runs" / "full", script), final_actor(tmp_path / "runs" / "killed", script)
     for name in full_actor:
@@ -194,6 +196,24 @@ OFF_POLICY_BAD_INPUTS = [
     (["--tau", "0"], "--tau must be in (0, 1]"),
     (["--tau", "1.5"], "--tau must be in (0, 1]"),
 ]
+PPO_BAD_INPUTS = [
+    (["--num-steps", "0"], "--num-steps must be > 0"),
+    (["--total-timesteps", "1000"], "--total-timesteps (1000) must be >= --num-steps (2048)"),
+    (["--num-minibatches", "0"], "--num-minibatches must be in [1, --num-steps (2048)]"),
+    (["--update-epochs", "0"], "--update-epochs must be > 0"),
+    (["--gae-lambda", "1.5"], "--gae-lambda must be in [0, 1]"),
+    (["--clip-coef", "0"], "--clip-coef must be > 0"),
+    (["--max-grad-norm", "0"], "--max-grad-norm must be > 0"),
+    (["--target-kl", "0"], "--target-kl must be > 0"),
+    (["--learning-rate", "0"], "--learning-rate must be > 0"),
+]
+# the settings RND and EBD add to PPO's
+INTRINSIC_BAD_INPUTS = [
+    (["--int-coef", "-1"], "--int-coef must be >= 0"),
+    (["--ext-coef", "-0.5"], "--ext-coef must be >= 0"),
+    (["--int-gamma", "1.5"], "--int-gamma must be in [0, 1]"),
+    (["--num-iterations-obs-norm-init", "-1"], "--num-iterations-obs-norm-init must be >= 0"),
+]
 EXTRA_BAD_INPUTS = {
     "td3": [
         (["--policy-frequency", "0"], "--policy-frequency must be > 0"),
@@ -215,16 +235,13 @@ EXTRA_BAD_INPUTS = {
         (["--utd-ratio", "0"], "--utd-ratio must be >= 1"),
         (["--policy-lr", "-1"], "--policy-lr must be > 0"),
     ],
-    "ppo": [
-        (["--num-steps", "0"], "--num-steps must be > 0"),
-        (["--total-timesteps", "1000"], "--total-timesteps (1000) must be >= --num-steps (2048)"),
-        (["--num-minibatches", "0"], "--num-minibatches must be in [1, --num-steps (2048)]"),
-        (["--update-epochs", "0"], "--update-epochs must be > 0"),
-        (["--gae-lambda", "1.5"], "--gae-lambda must be in [0, 1]"),
-        (["--clip-coef", "0"], "--clip-coef must be > 0"),
-        (["--max-grad-norm", "0"], "--max-grad-norm must be > 0"),
-        (["--target-kl", "0"], "--target-kl must be > 0"),
-        (["--learning-rate", "0"], "--learning-rate must be > 0"),
+    "ppo": PPO_BAD_INPUTS,
+    "rnd": PPO_BAD_INPUTS + INTRINSIC_BAD_INPUTS + [
+        (["--update-proportion", "0"], "--update-proportion must be in (0, 1]"),
+        (["--update-proportion", "1.5"], "--update-proportion must be in (0, 1]"),
+    ],
+    "ebd": PPO_BAD_INPUTS + INTRINSIC_BAD_INPUTS + [
+        (["--num-models", "1"], "--num-models must be >= 2"),
     ],
     "oparl": [
         (["--policy-frequency", "0"], "--policy-frequency must be > 0"),
