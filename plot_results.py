@@ -162,6 +162,16 @@ def algo_order(algos) -> list:
     return sorted(algos, key=lambda a: (not a.startswith("oparl"), a != "oparl", a))
 
 
+# the paper's systems keep one colour in every figure; other names (ablations, variants) take the rest in order
+PAPER_COLORS = {"oparl": "C0", "td3": "C1", "sac": "C2", "ppo": "C3", "rnd": "C4", "ebd": "C5", "redq": "C6"}
+
+
+def colors_of(algos: list) -> dict:
+    taken = {PAPER_COLORS[a] for a in algos if a in PAPER_COLORS}
+    spare = iter(c for c in (f"C{i}" for i in range(10)) if c not in taken)
+    return {a: PAPER_COLORS.get(a) or next(spare, "gray") for a in algos}
+
+
 def complete_runs(runs: list) -> dict:
     """{(algo, env): [runs]} holding the runs that reached their group's last evaluation step; warns about the others."""
     groups = defaultdict(list)
@@ -189,7 +199,7 @@ def plot_curves(runs: list, path: str, window: int = SMOOTHING):
     cols = min(3, len(envs))
     rows = -(-len(envs) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
-    colors = {a: f"C{i}" for i, a in enumerate(algos)}
+    colors = colors_of(algos)
     for ax, env in zip(axes.flat, envs):
         for algo in algos:
             group = [r for r in runs if r.env_id == env and r.algo == algo]
@@ -243,10 +253,11 @@ def plot_iqm(stats: dict, path: str):
     import matplotlib.pyplot as plt
 
     algos = algo_order(stats)
+    colors = colors_of(algos)
     fig, ax = plt.subplots(figsize=(6, 0.6 * len(algos) + 1.2))
     for i, algo in enumerate(algos):
         value, low, high = stats[algo][:3]
-        ax.plot([low, high], [i, i], color=f"C{i}", linewidth=6, alpha=0.5, solid_capstyle="butt")
+        ax.plot([low, high], [i, i], color=colors[algo], linewidth=6, alpha=0.5, solid_capstyle="butt")
         ax.plot([value], [i], "|", color="black", markersize=16)
     ax.set_yticks(range(len(algos)), [f"{a}\n{stats[a][4]} runs, {stats[a][3]} tasks" for a in algos])
     ax.set_ylim(len(algos) - 0.5, -0.5)

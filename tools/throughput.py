@@ -5,7 +5,7 @@ creation, the random phase) and a run of L + T steps (the same plus T training s
 figure is T / (time(L + T) - time(L)). Entries are alternated within every repeat, after one
 untimed warm-up run each, and the median over repeats is reported.
 
-An entry is one of our scripts by short name (`td3`, `sac`, `oparl`, `redq`, `ppo`), any script path, or a whole
+An entry is one of our scripts by short name (`td3`, `sac`, `oparl`, `redq`, `ppo`, `rnd`, `ebd`), any script path, or a whole
 command prefix, each optionally followed by its own flags and optionally prefixed by `mkl-avx512:` to run
 it through tools/mkl_avx512.sh (MKL's AVX-512 kernels on AMD CPUs), e.g.
 
@@ -82,7 +82,7 @@ def cpu_name() -> str:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("entries", nargs="+", help="a short name (td3, sac, oparl, redq, ppo) | path/to/script.py | 'command prefix', each with optional flags")
+    parser.add_argument("entries", nargs="+", help="a short name (td3, sac, oparl, redq, ppo, rnd, ebd) | path/to/script.py | 'command prefix', each with optional flags")
     parser.add_argument("--env-id", default="Hopper-v4")
     parser.add_argument("--learning-starts", type=int, default=1000, help="L: random steps before training")
     parser.add_argument("--steps", type=int, default=2000, help="T: training steps timed")
