@@ -1,16 +1,19 @@
 """Turn runs into the paper's figures and table.
 
-    python plot_results.py runs --out results                      # TensorBoard logs under runs/
-    python plot_results.py results/eval_series.csv --out results   # or the CSV this script writes
-    python plot_results.py results/eval_series.csv runs --finished-only --out results   # both, merged
+    python plot_results.py runs --out results/new                             # TensorBoard logs under runs/
+    python plot_results.py results/main/eval_series.csv --out results/main    # or the CSV this script writes
+    python plot_results.py results/main/eval_series.csv runs --finished-only --out results/main   # both, merged
+    python plot_results.py results/main/eval_series.csv runs/*__oparl__*__100000 --finished-only --out results/main
+                                                                   # run folders picked by name, as benchmark.sh names them
 
 Writes into --out:
   {prefix}curves.png        eval/episodic_return per env, one line per algorithm: mean over seeds of
                             each run's curve smoothed over --smoothing evaluations (default 10), shaded
                             +- half a std (the paper's Figure 2 style)
   {prefix}table.md          mean +- std of the final evaluation per algorithm and env (best in bold), an
-                            average row, OPARL's improvement over each baseline, the IQM with its 95% CI,
-                            and (unless --no-paper) the paper's Table 1 numbers beside ours
+                            average row, OPARL's improvement over each baseline, every run's final
+                            evaluation per seed, the IQM with its 95% CI, and (unless --no-paper) the
+                            paper's Table 1 numbers beside ours
   {prefix}iqm.png           interquartile mean of normalised scores (DMC return / 1000) over all runs of
                             the DMC tasks every algorithm has finished, with 95% stratified bootstrap confidence intervals
                             ("Deep RL at the edge of the statistical precipice", Agarwal et al. 2021)
@@ -96,8 +99,8 @@ def read_tensorboard(root: str, finished_only: bool = False) -> list:
         if unfinished:
             print(f"leaving out {len(unfinished)} unfinished run(s) (no DONE marker) under {root}")
         run_dirs = [d for d in run_dirs if d not in unfinished]
-        if not run_dirs:
-            fail(f"no finished run (with a DONE marker) under {root}")
+        if not run_dirs:  # one run folder among several sources, say, still running
+            return []
     found, configs, without_eval = [], [], []
     for run_dir in run_dirs:
         acc = EventAccumulator(run_dir, size_guidance={"scalars": 0, "tensors": 0})
@@ -315,6 +318,13 @@ def write_table(complete: dict, stats: dict, paper: dict, path: str):
         for a in algos:
             if a != "oparl":
                 lines.append(f"- OPARL vs {a}: {100 * (averages['oparl'] / averages[a] - 1):+.1f}% on the average row")
+    seeds = sorted({r.seed for group in complete.values() for r in group})
+    lines += ["", "Final evaluation return per seed:", "", "| task | algorithm | " + " | ".join(f"seed {s}" for s in seeds) + " |", "|---|---|" + "---|" * len(seeds)]
+    for env in envs:
+        for a in algos:
+            by_seed = {r.seed: r.returns[-1] for r in complete.get((a, env), [])}
+            if by_seed:
+                lines.append(f"| {env.removeprefix('dm_control/')} | {a} | " + " | ".join(f"{by_seed[s]:.1f}" if s in by_seed else "" for s in seeds) + " |")
     if stats:
         lines += ["", "Interquartile mean of normalised scores (DMC return / 1000) over all runs of the DMC tasks every algorithm has finished, 95% stratified bootstrap CI:", ""]
         lines += ["| algorithm | IQM | 95% CI | tasks | runs |", "|---|---|---|---|---|"]
@@ -360,6 +370,8 @@ def main(argv=None):
             key = (run.algo, run.env_id, run.seed)
             if key not in merged or len(run.steps) > len(merged[key].steps):
                 merged[key] = run
+    if not merged:
+        fail(f"no finished run (with a DONE marker) in {', '.join(args.sources)}")
     runs = all_runs = list(merged.values())
     for name, wanted, key in [("--algos", args.algos, "algo"), ("--env-ids", args.env_ids, "env_id")]:
         if wanted:

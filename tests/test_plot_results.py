@@ -209,3 +209,23 @@ def test_each_paper_system_keeps_its_colour_and_other_names_take_the_free_ones()
     assert pr.colors_of(["ebd", "ppo", "td3"]) == {"ebd": "C5", "ppo": "C3", "td3": "C1"}
     # an ablation figure: OPARL keeps C0, its variants take C1, C2, ... in order
     assert pr.colors_of(["oparl", "oparl_optimistic_only", "oparl_two_critics"]) == {"oparl": "C0", "oparl_optimistic_only": "C1", "oparl_two_critics": "C2"}
+
+
+def test_table_lists_every_final_return_per_seed(sweep, tmp_path):
+    out = str(tmp_path / "out")
+    pr.main([sweep, "--out", out, "--no-paper"])
+    table = open(os.path.join(out, "table.md")).read()
+    assert "| task | algorithm | seed 1 | seed 2 | seed 3 |" in table
+    assert "| cartpole-swingup-v0 | oparl | 100.0 | 200.0 | 300.0 |" in table
+    assert "| walker-walk-v0 | td3 | 600.0 | 700.0 | 800.0 |" in table
+
+
+def test_run_folders_picked_one_by_one_merge_and_unfinished_ones_are_left_out(sweep, tmp_path, capsys):
+    run_dirs = sorted(os.path.join(sweep, d) for d in os.listdir(sweep))
+    for run_dir in run_dirs[:-1]:
+        open(os.path.join(run_dir, "DONE"), "w").close()
+    out = str(tmp_path / "out")
+    pr.main([*run_dirs, "--finished-only", "--out", out, "--no-paper"])  # the last folder alone has no finished run
+    assert len(open(os.path.join(out, "final_returns.csv")).read().splitlines()) == 1 + len(run_dirs) - 1
+    with pytest.raises(SystemExit, match="no finished run"):
+        pr.main([run_dirs[-1], "--finished-only", "--out", out, "--no-paper"])
