@@ -90,6 +90,11 @@ run_one() {  # algo env seed total checkpoint_frequency [-- extra...]
   fi
   local steps=()
   [[ $total != default ]] && steps=(--total-timesteps "$total")
+  # which float32 matmul kernels this part of the run uses (tools/mkl_avx512.sh preloads its library), for
+  # results/mkl_kernels.csv; a resumed run appends a second line
+  local kernels=mkl-default
+  [[ ${LD_PRELOAD:-} == *libmkl_intel_cpu_true* ]] && kernels=mkl-avx512
+  echo "float32 kernels: $kernels" >>"$log"
   if OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 "${PYTHON:-python}" "$REPO/${algo}_continuous_action.py" \
       --env-id "$env" --seed "$seed" "${steps[@]}" --run-name "$name" --checkpoint-frequency "$ckpt" "$@" "${resume[@]}" \
       >>"$log" 2>&1; then

@@ -69,6 +69,8 @@ def test_sweep_runs_in_parallel_then_skips_finished_runs(tmp_path):
     assert names == ["Pendulum-v1__sac__1__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1", "Pendulum-v1__td3__1__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1"]
     for name in names:
         assert (tmp_path / "runs" / name / "DONE").exists() and (tmp_path / "logs" / f"{name}.log").exists()
+        # the log says which float32 kernels the run used (no tools/mkl_avx512.sh here: MKL's default ones)
+        assert "float32 kernels: mkl-default" in (tmp_path / "logs" / f"{name}.log").read_text()
     second = bench(*flags, cwd=tmp_path)
     assert "summary: 0 done, 2 skipped (finished before), 0 failed" in second.stdout
 
