@@ -1,13 +1,13 @@
 """Learning checks: each algorithm solves a small task on a fixed seed within a small budget.
 
-Thresholds come from measured runs (see the README's Tests section); Pendulum-v1's returns go
+Thresholds come from measured runs (see docs/tests.md); Pendulum-v1's returns go
 from about -1300 (random) to about -150 (solved)."""
 import pytest
 
 from conftest import load, small_args
 
 # script: (env, total steps, learning starts, return the final evaluation must beat). REDQ has no
-# learning test here: at 20 critic updates per step it would take many minutes (see the README).
+# learning test here: at 20 critic updates per step it would take many minutes (see docs/tests.md).
 BUDGETS = {
     "td3": ("Pendulum-v1", 8000, 1000, -400.0),
     "oparl": ("Pendulum-v1", 8000, 1000, -400.0),

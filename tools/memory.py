@@ -1,4 +1,4 @@
-"""Memory and checkpoint costs, the figures quoted in the README.
+"""Memory and checkpoint costs, the figures quoted in docs/reliability.md.
 
     python tools/memory.py rss td3 --env-id Hopper-v4 --total-timesteps 50000 --checkpoint-frequency 10000
         runs the script (one torch thread) and samples its resident memory every 2 s
