@@ -35,6 +35,7 @@ import numpy as np
 
 TAG = "eval/episodic_return"
 PAPER_TABLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paper", "paper_table1.csv")
+PAPER_CLAIMS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paper", "paper_mujoco_claims.csv")
 # hyperparameters that do not change what a run learns, or that identify it rather than its algorithm
 NOT_ALGORITHM = {"seed", "env_id", "exp_name", "run_name", "resume", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda", "torch_deterministic"}
 SMOOTHING = 10  # evaluations: 50k steps of a 1M-step run at one evaluation per 5000
@@ -227,29 +228,50 @@ def plot_curves(runs: list, path: str, window: int = SMOOTHING):
     plt.close(fig)
 
 
-def normalised_scores(complete: dict, algo: str, envs: set) -> list:
-    """Per DMC task in `envs`, the final returns / 1000 of `algo`'s runs."""
-    return [np.array([r.returns[-1] for r in group]) / 1000.0 for (a, env), group in sorted(complete.items()) if a == algo and env in envs]
+def score_scales(runs: list, random_scores: dict) -> dict:
+    """{task: (zero, one)}, a normalised score being (return - zero) / (one - zero). DMC tasks: 0 and 1000
+    (a reward in [0, 1] per step, 1000 steps). Other tasks only with a random-policy score: that score,
+    and the best evaluation return any run read reached on the task (MuJoCo returns have no common scale)."""
+    scales = {}
+    for env in sorted({r.env_id for r in runs}):
+        if env.startswith("dm_control/"):
+            scales[env] = (0.0, 1000.0)
+        elif env in random_scores:
+            scales[env] = (random_scores[env], max(float(r.returns.max()) for r in runs if r.env_id == env))
+    return scales
 
 
-def aggregate(complete: dict, algos: list) -> dict:
-    """IQM and CI per algorithm over the DMC tasks that every algorithm with DMC runs has finished, so
-    that the algorithms are compared on the same tasks."""
-    per_algo = [{env for (b, env) in complete if b == a and env.startswith("dm_control/")} for a in algos]
+def normalised_scores(complete: dict, algo: str, envs: set, scales: dict) -> list:
+    """Per task in `envs`, the normalised final returns of `algo`'s runs."""
+    return [(np.array([r.returns[-1] for r in group]) - scales[env][0]) / (scales[env][1] - scales[env][0]) for (a, env), group in sorted(complete.items()) if a == algo and env in envs]
+
+
+def aggregate(complete: dict, algos: list, scales: dict) -> dict:
+    """IQM and CI per algorithm over the normalisable tasks that every algorithm with such runs has
+    finished, so that the algorithms are compared on the same tasks."""
+    per_algo = [{env for (b, env) in complete if b == a and env in scales} for a in algos]
     per_algo = [envs for envs in per_algo if envs]
     shared = set.intersection(*per_algo) if per_algo else set()
     left_out = set().union(*per_algo) - shared
     if left_out:
-        warn(f"IQM only over the DMC tasks every algorithm has finished ({len(shared)}); left out: {', '.join(sorted(e.removeprefix('dm_control/') for e in left_out))}")
+        kind = "DMC tasks" if all(e.startswith("dm_control/") for e in scales) else "normalised tasks"
+        warn(f"IQM only over the {kind} every algorithm has finished ({len(shared)}); left out: {', '.join(sorted(e.removeprefix('dm_control/') for e in left_out))}")
     result = {}
     for algo in algos:
-        scores = normalised_scores(complete, algo, shared)
+        scores = normalised_scores(complete, algo, shared, scales)
         if scores:
             result[algo] = (iqm(np.concatenate(scores)), *stratified_bootstrap_ci(scores), len(scores), sum(len(s) for s in scores))
     return result
 
 
-def plot_iqm(stats: dict, path: str):
+def normalisation_text(scales: dict) -> str:
+    others = "(return - random policy) / (best seen - random policy)"
+    if all(env.startswith("dm_control/") for env in scales):
+        return "DMC return / 1000"
+    return others if not any(env.startswith("dm_control/") for env in scales) else f"DMC return / 1000; other tasks {others}"
+
+
+def plot_iqm(stats: dict, path: str, normalisation: str = "DMC return / 1000"):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -264,7 +286,7 @@ def plot_iqm(stats: dict, path: str):
         ax.plot([value], [i], "|", color="black", markersize=16)
     ax.set_yticks(range(len(algos)), [f"{a}\n{stats[a][4]} runs, {stats[a][3]} tasks" for a in algos])
     ax.set_ylim(len(algos) - 0.5, -0.5)
-    ax.set_xlabel("IQM of normalised score (DMC return / 1000)\nline: 95% stratified bootstrap confidence interval")
+    ax.set_xlabel(f"IQM of normalised score ({normalisation})\nline: 95% stratified bootstrap confidence interval")
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -276,7 +298,23 @@ def read_paper_table(path: str) -> dict:
         return {row["env_id"]: row for row in csv.DictReader(f)}
 
 
-def write_table(complete: dict, stats: dict, paper: dict, path: str):
+def read_paper_claims(path: str) -> dict:
+    """{(env_id, baseline): improvement in %}: the paper's stated gains of OPARL over a baseline."""
+    with open(path, newline="") as f:
+        return {(row["env_id"], row["baseline"]): float(row["improvement_pct"]) for row in csv.DictReader(f)}
+
+
+def read_random_scores(path: str) -> dict:
+    if not os.path.isfile(path):
+        fail(f"--random-scores {path}: no such file (tools/random_scores.py writes one)")
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        if not {"env_id", "random_return"} <= set(reader.fieldnames or []):
+            fail(f"--random-scores {path}: needs the columns env_id and random_return")
+        return {row["env_id"]: float(row["random_return"]) for row in reader}
+
+
+def write_table(complete: dict, stats: dict, paper: dict, path: str, claims: dict = None, scales: dict = None):
     algos = algo_order({a for a, _ in complete})
     envs = sorted({e for _, e in complete})
     cell = {key: np.array([r.returns[-1] for r in group]) for key, group in complete.items() if group}
@@ -325,12 +363,33 @@ def write_table(complete: dict, stats: dict, paper: dict, path: str):
             by_seed = {r.seed: r.returns[-1] for r in complete.get((a, env), [])}
             if by_seed:
                 lines.append(f"| {env.removeprefix('dm_control/')} | {a} | " + " | ".join(f"{by_seed[s]:.1f}" if s in by_seed else "" for s in seeds) + " |")
+    baselines = [a for a in algos if a != "oparl"]
+    if "oparl" in algos and baselines:
+        claims = {key: value for key, value in (claims or {}).items() if key[0] in envs}
+        lines += ["", "OPARL's final return against each baseline's, per task: OPARL mean / baseline mean - 1 (n/a where the baseline's mean is not positive)"
+                  + ("; the paper's claim, at 1M steps, in parentheses:" if claims else ":"), ""]
+        lines += ["| task | " + " | ".join(f"vs {b}" for b in baselines) + " |", "|---|" + "---|" * len(baselines)]
+        for env in envs:
+            if ("oparl", env) not in cell:
+                continue
+            row = []
+            for b in baselines:
+                text = f"{100 * (cell[('oparl', env)].mean() / cell[(b, env)].mean() - 1):+.1f}%" if (b, env) in cell and cell[(b, env)].mean() > 0 else ("n/a" if (b, env) in cell else "")
+                row.append(text + (f" (paper: {claims[(env, b)]:+.2f}%)" if (env, b) in claims else ""))
+            lines.append(f"| {env.removeprefix('dm_control/')} | " + " | ".join(row) + " |")
     if stats:
-        lines += ["", "Interquartile mean of normalised scores (DMC return / 1000) over all runs of the DMC tasks every algorithm has finished, 95% stratified bootstrap CI:", ""]
+        scales = scales or {}
+        normalisation = normalisation_text({env: scales[env] for env in envs if env in scales})
+        kind = "DMC tasks" if normalisation == "DMC return / 1000" else "normalised tasks"
+        lines += ["", f"Interquartile mean of normalised scores ({normalisation}) over all runs of the {kind} every algorithm has finished, 95% stratified bootstrap CI:", ""]
         lines += ["| algorithm | IQM | 95% CI | tasks | runs |", "|---|---|---|---|---|"]
         for a in algo_order(stats):
             value, low, high, tasks, runs = stats[a]
             lines.append(f"| {a} | {value:.3f} | [{low:.3f}, {high:.3f}] | {tasks} | {runs} |")
+        scaled = [env for env in envs if env in scales and not env.startswith("dm_control/")]
+        if scaled:
+            lines += ["", "The scale of each task's normalised score (0: the random policy, 1: the best evaluation return of any run read):", ""]
+            lines += ["| task | random policy | best seen |", "|---|---|---|"] + [f"| {env} | {scales[env][0]:.1f} | {scales[env][1]:.1f} |" for env in scaled]
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
 
@@ -356,7 +415,9 @@ def main(argv=None):
     parser.add_argument("--algos", nargs="+", help="only these algorithms (names as in the table)")
     parser.add_argument("--env-ids", nargs="+", help="only these environments")
     parser.add_argument("--paper-table", default=PAPER_TABLE, help="the paper's Table 1 as CSV (default: paper/paper_table1.csv)")
+    parser.add_argument("--paper-claims", default=PAPER_CLAIMS, help="the paper's stated gains of OPARL over each baseline, as CSV (default: paper/paper_mujoco_claims.csv)")
     parser.add_argument("--no-paper", action="store_true", help="leave out the paper's numbers")
+    parser.add_argument("--random-scores", help="CSV of env_id,random_return (tools/random_scores.py): normalise those non-DMC tasks from the random policy (0) to the best evaluation seen (1) for the IQM")
     parser.add_argument("--smoothing", type=int, default=SMOOTHING, help="trailing window of the curves, in evaluations (1: raw curves); the table and IQM use the raw final evaluation")
     parser.add_argument("--finished-only", action="store_true", help="from runs folders, only runs benchmark.sh marked DONE")
     args = parser.parse_args(argv)
@@ -380,17 +441,19 @@ def main(argv=None):
                 fail(f"{name}: {', '.join(sorted(unknown))} not found; the runs have {', '.join(sorted({getattr(r, key) for r in runs}))}")
             runs = [r for r in runs if getattr(r, key) in wanted]
     paper = {} if args.no_paper or not os.path.isfile(args.paper_table) else read_paper_table(args.paper_table)
+    claims = {} if args.no_paper or not os.path.isfile(args.paper_claims) else read_paper_claims(args.paper_claims)
+    scales = score_scales(all_runs, read_random_scores(args.random_scores) if args.random_scores else {})
 
     os.makedirs(args.out, exist_ok=True)
     out = lambda name: os.path.join(args.out, args.prefix + name)  # noqa: E731
     complete = complete_runs(runs)
-    stats = aggregate(complete, algo_order({a for a, _ in complete}))
+    stats = aggregate(complete, algo_order({a for a, _ in complete}), scales)
     plot_curves(runs, out("curves.png"), args.smoothing)
-    write_table(complete, stats, paper, out("table.md"))
+    write_table(complete, stats, paper, out("table.md"), claims, scales)
     if stats:
-        plot_iqm(stats, out("iqm.png"))
+        plot_iqm(stats, out("iqm.png"), normalisation_text({env: scales[env] for _, env in complete if env in scales}))
     else:
-        print("no DMC task among the runs: no IQM plot (scores are normalised as DMC return / 1000)")
+        print("no normalisable task among the runs, so no IQM plot (DMC returns are normalised by 1000; give --random-scores for other tasks)")
     write_csvs(all_runs, os.path.join(args.out, "eval_series.csv"), os.path.join(args.out, "final_returns.csv"))
     written = [out(name) for name in ["curves.png", "table.md", *(["iqm.png"] if stats else [])]]
     written += [os.path.join(args.out, name) for name in ("eval_series.csv", "final_returns.csv")]

@@ -229,3 +229,57 @@ def test_run_folders_picked_one_by_one_merge_and_unfinished_ones_are_left_out(sw
     assert len(open(os.path.join(out, "final_returns.csv")).read().splitlines()) == 1 + len(run_dirs) - 1
     with pytest.raises(SystemExit, match="no finished run"):
         pr.main([run_dirs[-1], "--finished-only", "--out", out, "--no-paper"])
+
+
+@pytest.fixture
+def mujoco_sweep(tmp_path):
+    """Final returns on Ant-v4: oparl [300, 300], td3 [100, 200] (mean 150), ppo [-20, -10]; the best evaluation seen is 400."""
+    root = str(tmp_path / "mujoco")
+    for seed, (o, t, p) in enumerate([(300, 100, -20), (300, 200, -10)], start=1):
+        write_run(root, "oparl_continuous_action", "Ant-v4", seed, [0, 400 if seed == 1 else 0, o])
+        write_run(root, "td3_continuous_action", "Ant-v4", seed, [0, 50, t])
+        write_run(root, "ppo_continuous_action", "Ant-v4", seed, [0, -5, p])
+    scores = tmp_path / "random.csv"
+    scores.write_text("env_id,random_return,episodes\nAnt-v4,-100.0,10\n")
+    return root, str(scores)
+
+
+def test_non_dmc_tasks_are_normalised_from_the_random_policy_to_the_best_seen(mujoco_sweep, tmp_path):
+    root, scores = mujoco_sweep
+    out = str(tmp_path / "out")
+    pr.main([root, "--out", out, "--no-paper", "--random-scores", scores])
+    table = open(os.path.join(out, "table.md")).read()
+    # (300 + 100) / (400 + 100) = 0.8 for both oparl runs; td3 (100 + 100) / 500 = 0.4 and (200 + 100) / 500 = 0.6
+    assert "| oparl | 0.800 | [0.800, 0.800] | 1 | 2 |" in table
+    assert "| td3 | 0.500 |" in table
+    assert "(return - random policy) / (best seen - random policy)" in table
+    assert "| Ant-v4 | -100.0 | 400.0 |" in table
+    assert os.path.exists(os.path.join(out, "iqm.png"))
+
+
+def test_without_random_scores_a_mujoco_task_gets_no_iqm(mujoco_sweep, tmp_path, capsys):
+    root, _ = mujoco_sweep
+    out = str(tmp_path / "out")
+    pr.main([root, "--out", out, "--no-paper"])
+    assert "Interquartile mean" not in open(os.path.join(out, "table.md")).read()
+    assert "no normalisable task" in capsys.readouterr().out
+
+
+def test_oparls_gain_over_each_baseline_per_task_beside_the_papers_claim(mujoco_sweep, tmp_path):
+    root, _ = mujoco_sweep
+    claims = tmp_path / "claims.csv"
+    claims.write_text("env_id,baseline,improvement_pct,source\nAnt-v4,td3,51.25,x\n")
+    out = str(tmp_path / "out")
+    pr.main([root, "--out", out, "--paper-claims", str(claims)])
+    table = open(os.path.join(out, "table.md")).read()
+    # 300 / 150 - 1 = +100%; PPO's mean is negative: no percentage
+    assert "| Ant-v4 | n/a | +100.0% (paper: +51.25%) |" in table
+
+
+def test_random_scores_file_errors_are_one_line(mujoco_sweep, tmp_path):
+    root, _ = mujoco_sweep
+    bad = tmp_path / "bad.csv"
+    bad.write_text("env,score\nAnt-v4,1\n")
+    for path, message in [(str(tmp_path / "missing.csv"), "no such file"), (str(bad), "needs the columns env_id and random_return")]:
+        with pytest.raises(SystemExit, match=message):
+            pr.main([root, "--out", str(tmp_path / "out"), "--random-scores", path])

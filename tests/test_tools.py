@@ -120,3 +120,17 @@ def test_mkl_avx512_changes_the_kernels_not_the_results(tmp_path):
         assert preload == str(tmp_path / "build" / "libmkl_intel_cpu_true.so") and os.path.isfile(preload)
         assert wrapped.stderr == f"mkl_avx512: MKL's AVX-512 kernels (preloading {preload})\n"
         assert digest != default.stdout.split()[2]  # MKL took other kernels, which round otherwise
+
+
+def test_random_scores_are_reproducible_means_of_random_episodes(tmp_path):
+    sys.path.insert(0, os.path.join(REPO, "tools"))
+    import random_scores
+
+    first, second = tmp_path / "a.csv", tmp_path / "b.csv"
+    random_scores.main(["Pendulum-v1", "--episodes", "3", "--out", str(first)])
+    random_scores.main(["Pendulum-v1", "--episodes", "3", "--out", str(second)])
+    assert first.read_text() == second.read_text()
+    header, row = first.read_text().splitlines()
+    assert header == "env_id,random_return,std,episodes,seed" and row.startswith("Pendulum-v1,")
+    # a random policy on Pendulum-v1 scores well below -500 per 200-step episode
+    assert float(row.split(",")[1]) < -500
