@@ -110,9 +110,9 @@ def test_evaluation_acts_with_the_squashed_mean(tmp_path, monkeypatch):
         obs, _ = env.reset(seed=101) if episode == 0 else env.reset()
         total, done = 0.0, False
         while not done:
-            with torch.no_grad():
-                mean, _ = actor(torch.as_tensor(obs))
-            obs, reward, terminated, truncated, _ = env.step((torch.tanh(mean) * actor.action_scale + actor.action_bias).numpy())
+            with torch.no_grad():  # the actor stays on the run's device (a GPU where there is one)
+                mean, _ = actor(torch.as_tensor(obs, device=actor.action_scale.device))
+            obs, reward, terminated, truncated, _ = env.step((torch.tanh(mean) * actor.action_scale + actor.action_bias).cpu().numpy())
             total, done = total + reward, terminated or truncated
         by_hand.append(total)
     assert result["eval_returns"][-1][1] == pytest.approx(np.mean(by_hand), abs=1e-6)
