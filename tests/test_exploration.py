@@ -19,7 +19,7 @@ def test_rnd_target_never_changes_over_a_run_while_the_predictor_learns(tmp_path
     torch.manual_seed(1)  # main seeds torch, then builds the agent and the RND model, in this order
     rnd.Agent(3, 1)
     initial = rnd.RNDModel(3)
-    trained = result["rnd_model"]
+    trained = result["rnd_model"].cpu()  # from the run's device (a GPU where there is one)
     for name, tensor in initial.target.state_dict().items():
         assert torch.equal(trained.target.state_dict()[name], tensor), name
     assert not torch.equal(trained.predictor[0].weight, initial.predictor[0].weight)
