@@ -214,3 +214,16 @@ def test_bad_input_is_refused_in_one_line(flags, message, tmp_path):
     with pytest.raises(SystemExit) as exit_info:
         authors_release.main(argv)
     assert str(exit_info.value).startswith("error: ") and message in str(exit_info.value)
+
+
+def test_the_releases_evaluations_are_read_from_its_log_step_zero_included(tmp_path):
+    (tmp_path / "seed=2_result.txt").write_text(
+        "policy:TD3 Domain: walker Task: walk seed:2 policy_utd:1 policy_interval:1 reset_freq:20000 qnum:5 N:1 bili:2\n"
+        "Timesteps 0 Evaluation over 10 episodes: 4.968\nTimesteps 5000 Evaluation over 10 episodes: -12.500\n")
+    evaluated = authors_release.evaluations(str(tmp_path), seed=2)
+    assert evaluated == [(0, 4.968), (5000, -12.5)]
+    authors_release.write_eval_series(str(tmp_path / "eval_series.csv"), "dm_control/walker-walk-v0", 2, evaluated)
+    assert (tmp_path / "eval_series.csv").read_text().splitlines() == [
+        "algo,env_id,seed,step,episodic_return", "oparl_release,dm_control/walker-walk-v0,2,0,4.9680", "oparl_release,dm_control/walker-walk-v0,2,5000,-12.5000"]
+    with pytest.raises(SystemExit, match="holds no evaluation"):
+        authors_release.evaluations(str(tmp_path), seed=3)

@@ -156,19 +156,22 @@ def run_release(args: Args, domain: str, task: str, run_dir: str):
     exec(compile(source, sys.argv[0], "exec"), {"__name__": "__main__", "__file__": sys.argv[0]})
 
 
-def evaluations(run_dir: str) -> np.ndarray:
-    """The release's evaluations: results/*.npy, one mean return per 5000 steps from step 0."""
-    found = glob.glob(os.path.join(run_dir, "results", "*.npy"))
-    if len(found) != 1:
-        fail(f"{run_dir}/results holds {len(found)} .npy files; expected the one main.py wrote")
-    return np.load(found[0])
+def evaluations(run_dir: str, seed: int) -> list:
+    """The release's evaluations, (step, mean return), from the log main.py appends to: a line
+    `Timesteps N Evaluation over 10 episodes: R` per evaluation, step 0 included (its results/*.npy
+    holds the same, but only once a run has passed 5000 steps)."""
+    path = os.path.join(run_dir, f"seed={seed}_result.txt")
+    found = re.findall(r"^Timesteps (\d+) Evaluation over \d+ episodes: (-?[\d.]+)$", open(path).read() if os.path.exists(path) else "", re.M)
+    if not found:
+        fail(f"{path} holds no evaluation; main.py did not run to its first one")
+    return [(int(step), float(value)) for step, value in found]
 
 
-def write_eval_series(path: str, env_id: str, seed: int, returns: np.ndarray, every: int = 5000):
+def write_eval_series(path: str, env_id: str, seed: int, evaluated: list):
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["algo", "env_id", "seed", "step", "episodic_return"])
-        writer.writerows((ALGO, env_id, seed, i * every, f"{value:.4f}") for i, value in enumerate(returns))
+        writer.writerows((ALGO, env_id, seed, step, f"{value:.4f}") for step, value in evaluated)
 
 
 def main(argv=None):
@@ -191,9 +194,9 @@ def main(argv=None):
     os.makedirs(run_dir, exist_ok=True)
     start = time.time()
     run_release(args, domain, task, run_dir)
-    returns = evaluations(run_dir)
-    write_eval_series(csv_path, args.env_id, args.seed, returns)
-    print(f"{ALGO} {args.env_id} seed {args.seed}: {len(returns)} evaluations, final {returns[-1]:.1f}, {time.time() - start:.0f} s; {csv_path}")
+    evaluated = evaluations(run_dir, args.seed)
+    write_eval_series(csv_path, args.env_id, args.seed, evaluated)
+    print(f"{ALGO} {args.env_id} seed {args.seed}: {len(evaluated)} evaluations, final {evaluated[-1][1]:.1f} at step {evaluated[-1][0]}, {time.time() - start:.0f} s; {csv_path}")
     return csv_path
 
 
