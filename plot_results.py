@@ -87,7 +87,8 @@ def algorithm_names(configs: list) -> list:
     return names
 
 
-def read_tensorboard(root: str, finished_only: bool = False) -> list:
+def read_tensorboard(root: str, finished_only: bool = False, tag: str = TAG) -> list:
+    """Every run under `root` that logged `tag`, its series as (steps, values)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     if not os.path.isdir(root):
@@ -106,17 +107,17 @@ def read_tensorboard(root: str, finished_only: bool = False) -> list:
     for run_dir in run_dirs:
         acc = EventAccumulator(run_dir, size_guidance={"scalars": 0, "tensors": 0})
         acc.Reload()
-        if TAG not in acc.Tags()["scalars"] or "hyperparameters/text_summary" not in acc.Tags()["tensors"]:
+        if tag not in acc.Tags()["scalars"] or "hyperparameters/text_summary" not in acc.Tags()["tensors"]:
             without_eval.append(run_dir)
             continue
         params = parse_hyperparameters(acc.Tensors("hyperparameters/text_summary")[0].tensor_proto.string_val[0].decode())
-        events = acc.Scalars(TAG)
+        events = acc.Scalars(tag)
         found.append((params, np.array([e.step for e in events]), np.array([e.value for e in events]), run_dir))
         configs.append((params["exp_name"], tuple(sorted((k, v) for k, v in params.items() if k not in NOT_ALGORITHM))))
     if without_eval:
-        warn(f"{len(without_eval)} run(s) have no {TAG} and are left out: {', '.join(without_eval)}")
+        warn(f"{len(without_eval)} run(s) have no {tag} and are left out: {', '.join(without_eval)}")
     if not found:
-        fail(f"no run under {root} logged {TAG}")
+        fail(f"no run under {root} logged {tag}")
     names = algorithm_names(configs)
     return [Run(name, p["env_id"], int(p["seed"]), steps, returns, d) for name, (p, steps, returns, d) in zip(names, found)]
 

@@ -134,3 +134,19 @@ def test_random_scores_are_reproducible_means_of_random_episodes(tmp_path):
     assert header == "env_id,random_return,std,episodes,seed" and row.startswith("Pendulum-v1,")
     # a random policy on Pendulum-v1 scores well below -500 per 200-step episode
     assert float(row.split(",")[1]) < -500
+
+
+def test_export_scalars_writes_any_tag_of_finished_runs(tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    run_dir = tmp_path / "runs" / "r"
+    writer = SummaryWriter(str(run_dir))
+    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n|exp_name|rnd_continuous_action|\n|env_id|Pendulum-v1|\n|seed|2|")
+    for step, value in [(0, 0.5), (2048, 0.25)]:
+        writer.add_scalar("charts/intrinsic_reward", value, step)
+    writer.close()
+    (run_dir / "DONE").touch()
+    out = tmp_path / "out.csv"
+    result = tool("export_scalars.py", str(run_dir), "--tag", "charts/intrinsic_reward", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    assert out.read_text().splitlines() == ["algo,env_id,seed,step,value", "rnd,Pendulum-v1,2,0,0.5", "rnd,Pendulum-v1,2,2048,0.25"]
