@@ -22,8 +22,6 @@ def main(argv=None):
     parser.add_argument("--out", required=True, help="the CSV to write")
     args = parser.parse_args(argv)
     runs = [run for source in args.sources for run in plot_results.read_tensorboard(source, finished_only=True, tag=args.tag)]
-    if not runs:
-        plot_results.fail(f"no finished run logged {args.tag}")
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w", newline="") as f:
         writer = csv.writer(f)
