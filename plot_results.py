@@ -215,7 +215,7 @@ def plot_curves(runs: list, path: str, window: int = SMOOTHING):
             for i, r in enumerate(group):  # each run on the common grid; NaN where a run stopped early
                 curves[i, np.searchsorted(steps, r.steps)] = smooth(r.returns, window)
             mean, std = np.nanmean(curves, 0), np.nanstd(curves, 0)
-            ax.plot(steps, mean, color=colors[algo], label=f"{algo} ({len(group)} seeds)")
+            ax.plot(steps, mean, color=colors[algo], label=f"{algo} ({len(group)} seed{'s' if len(group) > 1 else ''})")
             ax.fill_between(steps, mean - std / 2, mean + std / 2, color=colors[algo], alpha=0.2)
         ax.set_title(env.removeprefix("dm_control/"))
         ax.set_xlabel("environment steps")
@@ -321,6 +321,7 @@ def write_table(complete: dict, stats: dict, paper: dict, path: str, claims: dic
     cell = {key: np.array([r.returns[-1] for r in group]) for key, group in complete.items() if group}
     steps = {key: int(group[0].steps[-1]) for key, group in complete.items() if group}
     budgets = sorted(set(steps.values()))
+    paper = {env: row for env, row in (paper or {}).items() if env in envs}  # Table 1 has no MuJoCo rows
     paper_algos = [a for a in ("oparl", "redq", "sac", "td3") if paper and any(f"{a}_mean" in row for row in paper.values())]
     lines = [f"Final evaluation return (mean +- std over seeds; seeds per cell in parentheses) at {' / '.join(map(str, budgets))} steps."]
     if paper:
