@@ -9,8 +9,8 @@ from conftest import load, small_args
 # script: (env, total steps, learning starts, return the final evaluation must beat). REDQ has no
 # learning test here: at 20 critic updates per step it would take many minutes (see docs/tests.md).
 BUDGETS = {
-    "td3": ("Pendulum-v1", 8000, 1000, -400.0),
-    "oparl": ("Pendulum-v1", 8000, 1000, -400.0),
+    "td3": ("Pendulum-v1", 7000, 1000, -400.0),
+    "oparl": ("Pendulum-v1", 7000, 1000, -400.0),
     "sac": ("Pendulum-v1", 5000, 1000, -400.0),
     "ppo": ("InvertedPendulum-v4", 30000, None, 500.0),  # PPO's default rollouts of 2048 steps; 1000 is solved
     "rnd": ("InvertedPendulum-v4", 30000, None, 500.0),  # the bonus must not keep PPO from a task it solves
