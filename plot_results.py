@@ -321,8 +321,8 @@ def write_table(complete: dict, stats: dict, paper: dict, path: str, claims: dic
     cell = {key: np.array([r.returns[-1] for r in group]) for key, group in complete.items() if group}
     steps = {key: int(group[0].steps[-1]) for key, group in complete.items() if group}
     budgets = sorted(set(steps.values()))
-    paper = {env: row for env, row in (paper or {}).items() if env in envs}  # Table 1 has no MuJoCo rows
-    paper_algos = [a for a in ("oparl", "redq", "sac", "td3") if paper and any(f"{a}_mean" in row for row in paper.values())]
+    paper = {env: row for env, row in paper.items() if env in envs}  # Table 1 has no MuJoCo rows
+    paper_algos = [a for a in ("oparl", "redq", "sac", "td3") if any(f"{a}_mean" in row for row in paper.values())]
     lines = [f"Final evaluation return (mean +- std over seeds; seeds per cell in parentheses) at {' / '.join(map(str, budgets))} steps."]
     if paper:
         lines.append("Columns marked *paper* are the paper's Table 1 (1M steps, 10 seeds), copied for reference: a different budget.")
