@@ -83,6 +83,8 @@ class Args:
     """the number of episodes per evaluation"""
     bf16: bool = False
     """run the training matmuls in bfloat16 (autocast; weights, losses and optimizer states stay float32)"""
+    cudagraphs: bool = False
+    """record each kind of training update once as a CUDA graph and replay it (needs a CUDA GPU); losses are checked for NaN every 100 steps"""
 
 
 def fail(message: str):
@@ -212,7 +214,7 @@ class Actor(nn.Module):
     def get_action(self, x):
         """A sampled action, its log-probability (summed over dimensions) and the deterministic action."""
         mean, log_std = self(x)
-        normal = torch.distributions.Normal(mean, log_std.exp())
+        normal = torch.distributions.Normal(mean, log_std.exp(), validate_args=False)  # validation syncs with the host
         x_t = normal.rsample()  # for reparameterization trick (mean + std * N(0,1))
         y_t = torch.tanh(x_t)
         action = y_t * self.action_scale + self.action_bias
@@ -236,6 +238,7 @@ class ReplayBuffer:
         self.capacity, self.pos, self.size = capacity, 0, 0
         self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
         self.storage = torch.zeros((capacity, sum(self.widths)), dtype=torch.float32, device=device)
+        self.indices = torch.zeros(0, dtype=torch.int64, device=device)  # the rows of the next batch
 
     def add(self, obs, action, next_obs, reward, termination):
         row = np.concatenate([obs, action, next_obs, [reward, termination]], dtype=np.float32)
@@ -243,10 +246,19 @@ class ReplayBuffer:
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
-    def sample(self, batch_size: int) -> Batch:
-        indices = torch.randint(self.size, (batch_size,), device=self.storage.device)
-        obs, actions, next_obs, rewards, terminations = self.storage[indices].split(self.widths, dim=1)
+    def draw(self, batch_size: int):
+        """Draw the rows of the next batch into `self.indices`, in place: a CUDA graph that gathers
+        them reads the same tensor at every replay, while the buffer's size changes every step."""
+        torch.randint(self.size, (batch_size,), device=self.storage.device, out=self.indices)
+
+    def batch(self) -> Batch:
+        """The transitions at the drawn rows."""
+        obs, actions, next_obs, rewards, terminations = self.storage[self.indices].split(self.widths, dim=1)
         return Batch(obs, actions, next_obs, rewards.squeeze(1), terminations.squeeze(1))
+
+    def sample(self, batch_size: int) -> Batch:
+        self.draw(batch_size)
+        return self.batch()
 
 
 def td_target(batch: Batch, actor: Actor, qf_target: QEnsemble, alpha: torch.Tensor, args: Args):
@@ -269,6 +281,8 @@ class NonFiniteError(Exception):
 
 
 def check_finite(value: torch.Tensor, name: str):
+    if torch.cuda.is_available() and torch.cuda.is_current_stream_capturing():  # a graph cannot stop on a value: --cudagraphs checks when it logs
+        return
     if not torch.isfinite(value):
         raise NonFiniteError(name)
 
@@ -307,6 +321,35 @@ def update_alpha(batch: Batch, actor: Actor, log_alpha: torch.Tensor, a_optimize
     return alpha_loss.detach()
 
 
+class CudaGraph:
+    """--cudagraphs: `CudaGraph(fn)(*key)` runs `fn(*key)` as a CUDA graph, one per key. The first
+    `warmup` calls of a key run eagerly on a side stream (they allocate the gradients and optimizer
+    states the graph will reuse), the next one records the graph and every call replays it: one
+    launch instead of hundreds of small kernels, with no host synchronisation. A graph reads its
+    inputs from the tensors it saw when recorded (the replay buffer's storage and drawn indices),
+    so they must change in place; what it returns is overwritten by its next replay."""
+
+    def __init__(self, fn, warmup: int = 3):
+        self.fn, self.warmup = fn, warmup
+        self.calls, self.graphs, self.outputs = {}, {}, {}
+
+    def __call__(self, *key):
+        if key not in self.graphs:
+            self.calls[key] = self.calls.get(key, 0) + 1
+            if self.calls[key] <= self.warmup:
+                stream = torch.cuda.Stream()
+                stream.wait_stream(torch.cuda.current_stream())
+                with torch.cuda.stream(stream):
+                    outputs = self.fn(*key)
+                torch.cuda.current_stream().wait_stream(stream)
+                return outputs
+            self.graphs[key] = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graphs[key]):  # records the kernels without running them
+                self.outputs[key] = self.fn(*key)
+        self.graphs[key].replay()
+        return self.outputs[key]
+
+
 @torch.no_grad()
 def soft_update(targets: list, sources: list, tau: float):
     """target <- tau * source + (1 - tau) * target for every parameter, in one fused call."""
@@ -338,7 +381,7 @@ def evaluate(actor: Actor, env: gym.Env, num_episodes: int, seed: int) -> np.nda
 # where an environment holds no state but its random generators, so any env can be resumed.
 CHECKPOINT = "checkpoint.pt"
 # flags that may differ between a run and its resumption: they don't change what is learned
-RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda"}
+RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda", "cudagraphs"}
 
 
 def rng_state(rng) -> dict:
@@ -411,6 +454,8 @@ def main(args: Args):
     torch.backends.cudnn.deterministic = args.torch_deterministic
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    if args.cudagraphs and device.type != "cuda":
+        fail("--cudagraphs needs a CUDA GPU" + (" and drops --no-cuda" if torch.cuda.is_available() else "; torch finds none here"))
     if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
         os.environ.setdefault("MUJOCO_GL", "disable")
 
@@ -426,16 +471,35 @@ def main(args: Args):
     qf = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
     qf_target = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
     qf_target.load_state_dict(qf.state_dict())
-    q_optimizer = optim.Adam(qf.parameters(), lr=args.q_lr, fused=True)
-    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr, fused=True)
+    q_optimizer = optim.Adam(qf.parameters(), lr=args.q_lr, fused=True, capturable=args.cudagraphs)
+    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr, fused=True, capturable=args.cudagraphs)
 
     # Automatic entropy tuning
     target_entropy = -float(action_dim)
     log_alpha = torch.zeros(1, requires_grad=True, device=device)  # alpha starts at 1, as in CleanRL
-    a_optimizer = optim.Adam([log_alpha], lr=args.q_lr)
+    a_optimizer = optim.Adam([log_alpha], lr=args.q_lr, fused=True, capturable=args.cudagraphs)
     alpha = log_alpha.detach().exp() if args.autotune else torch.tensor(args.alpha, device=device)
 
     rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device)
+
+    def update(policy_step: bool, target_step: bool):
+        """One training iteration on the batch at the buffer's drawn rows (the critics; every
+        --policy-frequency steps the actor and alpha; every --target-network-frequency the targets)."""
+        with bf16_autocast(device, args.bf16):
+            batch = rb.batch()
+            qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, actor, qf_target, alpha, args)
+            actor_loss = alpha_loss = None
+            if policy_step:  # TD3 Delayed update support
+                for _ in range(args.policy_frequency):  # compensate for the delay by doing 'actor_update_interval' instead of 1
+                    actor_loss = update_actor(batch, actor, actor_optimizer, qf, alpha)
+                    if args.autotune:
+                        alpha_loss = update_alpha(batch, actor, log_alpha, a_optimizer, target_entropy)
+                        alpha.copy_(log_alpha.detach().exp())  # in place: a graph reads alpha where it was
+            if target_step:
+                soft_update([qf_target], [qf], args.tau)
+        return qf_loss, qf_a_values, actor_loss, alpha_loss
+
+    train = CudaGraph(update) if args.cudagraphs else update  # one graph per (policy_step, target_step)
 
     nets = {"actor": actor, "qf": qf, "qf_target": qf_target}
     optimizers = {"q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer, "a_optimizer": a_optimizer}
@@ -466,10 +530,13 @@ def main(args: Args):
         start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
         with torch.no_grad():
             log_alpha.copy_(checkpoint["log_alpha"])
-        alpha = log_alpha.detach().exp() if args.autotune else alpha
+        if args.autotune:
+            alpha.copy_(log_alpha.detach().exp())
         for name, net in nets.items():
             net.load_state_dict(checkpoint["nets"][name])
         for name, opt in optimizers.items():
+            for group in checkpoint["optimizers"][name]["param_groups"]:  # --cudagraphs may differ from the run's
+                group["capturable"] = args.cudagraphs
             opt.load_state_dict(checkpoint["optimizers"][name])
         rows = checkpoint["buffer"]["rows"]
         rb.storage[: len(rows)] = rows.to(device)
@@ -548,24 +615,21 @@ def main(args: Args):
 
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
+            policy_step, log_step = global_step % args.policy_frequency == 0, global_step % 100 == 0
             try:
-                with bf16_autocast(device, args.bf16):
-                    batch = rb.sample(args.batch_size)
-                    qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, actor, qf_target, alpha, args)
-                    if global_step % args.policy_frequency == 0:  # TD3 Delayed update support
-                        for _ in range(args.policy_frequency):  # compensate for the delay by doing 'actor_update_interval' instead of 1
-                            actor_loss = update_actor(batch, actor, actor_optimizer, qf, alpha)
-                            if args.autotune:
-                                alpha_loss = update_alpha(batch, actor, log_alpha, a_optimizer, target_entropy)
-                                alpha = log_alpha.detach().exp()
-                    if global_step % args.target_network_frequency == 0:
-                        soft_update([qf_target], [qf], args.tau)
+                rb.draw(args.batch_size)  # outside any graph: the buffer grows every step
+                qf_loss, qf_a_values, actor_loss, alpha_loss = train(policy_step, global_step % args.target_network_frequency == 0)
+                if args.cudagraphs and policy_step and log_step:  # a graph cannot stop on a value: check what it logs
+                    check_finite(qf_loss, "qf_loss")
+                    check_finite(actor_loss, "actor_loss")
             except NonFiniteError as quantity:
+                if args.cudagraphs:
+                    fail(f"{quantity} became non-finite by step {global_step} (--cudagraphs checks every 100 steps and keeps no last finite state; without it a run stops at the first bad update)")
                 path = os.path.join(run_dir, "last_good_state.pt")
                 write_checkpoint(path, snapshot(global_step))
                 fail(f"{quantity} became non-finite at step {global_step} (try a smaller --q-lr or --policy-lr); the last finite state is in {path}")
 
-            if global_step % args.policy_frequency == 0 and global_step % 100 == 0:
+            if policy_step and log_step:
                 writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
                 writer.add_scalar("losses/qf_loss", qf_loss.item() / len(qf_a_values), global_step)  # per critic, as CleanRL
                 writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)

@@ -81,6 +81,8 @@ class Args:
     """the number of episodes per evaluation"""
     bf16: bool = False
     """run the training matmuls in bfloat16 (autocast; weights, losses and optimizer states stay float32)"""
+    cudagraphs: bool = False
+    """record each kind of training update once as a CUDA graph and replay it (needs a CUDA GPU); losses are checked for NaN every 100 steps"""
 
 
 def fail(message: str):
@@ -214,6 +216,7 @@ class ReplayBuffer:
         self.capacity, self.pos, self.size = capacity, 0, 0
         self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
         self.storage = torch.zeros((capacity, sum(self.widths)), dtype=torch.float32, device=device)
+        self.indices = torch.zeros(0, dtype=torch.int64, device=device)  # the rows of the next batch
 
     def add(self, obs, action, next_obs, reward, termination):
         row = np.concatenate([obs, action, next_obs, [reward, termination]], dtype=np.float32)
@@ -221,10 +224,19 @@ class ReplayBuffer:
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
-    def sample(self, batch_size: int) -> Batch:
-        indices = torch.randint(self.size, (batch_size,), device=self.storage.device)
-        obs, actions, next_obs, rewards, terminations = self.storage[indices].split(self.widths, dim=1)
+    def draw(self, batch_size: int):
+        """Draw the rows of the next batch into `self.indices`, in place: a CUDA graph that gathers
+        them reads the same tensor at every replay, while the buffer's size changes every step."""
+        torch.randint(self.size, (batch_size,), device=self.storage.device, out=self.indices)
+
+    def batch(self) -> Batch:
+        """The transitions at the drawn rows."""
+        obs, actions, next_obs, rewards, terminations = self.storage[self.indices].split(self.widths, dim=1)
         return Batch(obs, actions, next_obs, rewards.squeeze(1), terminations.squeeze(1))
+
+    def sample(self, batch_size: int) -> Batch:
+        self.draw(batch_size)
+        return self.batch()
 
 
 def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Args):
@@ -251,6 +263,8 @@ class NonFiniteError(Exception):
 
 
 def check_finite(value: torch.Tensor, name: str):
+    if torch.cuda.is_available() and torch.cuda.is_current_stream_capturing():  # a graph cannot stop on a value: --cudagraphs checks when it logs
+        return
     if not torch.isfinite(value):
         raise NonFiniteError(name)
 
@@ -274,6 +288,35 @@ def update_actor(batch: Batch, actor: Actor, actor_optimizer, qf: QEnsemble):
     actor_loss.backward()
     actor_optimizer.step()
     return actor_loss.detach()
+
+
+class CudaGraph:
+    """--cudagraphs: `CudaGraph(fn)(*key)` runs `fn(*key)` as a CUDA graph, one per key. The first
+    `warmup` calls of a key run eagerly on a side stream (they allocate the gradients and optimizer
+    states the graph will reuse), the next one records the graph and every call replays it: one
+    launch instead of hundreds of small kernels, with no host synchronisation. A graph reads its
+    inputs from the tensors it saw when recorded (the replay buffer's storage and drawn indices),
+    so they must change in place; what it returns is overwritten by its next replay."""
+
+    def __init__(self, fn, warmup: int = 3):
+        self.fn, self.warmup = fn, warmup
+        self.calls, self.graphs, self.outputs = {}, {}, {}
+
+    def __call__(self, *key):
+        if key not in self.graphs:
+            self.calls[key] = self.calls.get(key, 0) + 1
+            if self.calls[key] <= self.warmup:
+                stream = torch.cuda.Stream()
+                stream.wait_stream(torch.cuda.current_stream())
+                with torch.cuda.stream(stream):
+                    outputs = self.fn(*key)
+                torch.cuda.current_stream().wait_stream(stream)
+                return outputs
+            self.graphs[key] = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graphs[key]):  # records the kernels without running them
+                self.outputs[key] = self.fn(*key)
+        self.graphs[key].replay()
+        return self.outputs[key]
 
 
 @torch.no_grad()
@@ -307,7 +350,7 @@ def evaluate(actor: Actor, env: gym.Env, num_episodes: int, seed: int) -> np.nda
 # where an environment holds no state but its random generators, so any env can be resumed.
 CHECKPOINT = "checkpoint.pt"
 # flags that may differ between a run and its resumption: they don't change what is learned
-RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda"}
+RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda", "cudagraphs"}
 
 
 def rng_state(rng) -> dict:
@@ -380,6 +423,8 @@ def main(args: Args):
     torch.backends.cudnn.deterministic = args.torch_deterministic
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    if args.cudagraphs and device.type != "cuda":
+        fail("--cudagraphs needs a CUDA GPU" + (" and drops --no-cuda" if torch.cuda.is_available() else "; torch finds none here"))
     if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
         os.environ.setdefault("MUJOCO_GL", "disable")
 
@@ -397,10 +442,24 @@ def main(args: Args):
     qf_target = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
     target_actor.load_state_dict(actor.state_dict())
     qf_target.load_state_dict(qf.state_dict())
-    q_optimizer = optim.Adam(qf.parameters(), lr=args.learning_rate, fused=True)
-    actor_optimizer = optim.Adam(actor.parameters(), lr=args.learning_rate, fused=True)
+    q_optimizer = optim.Adam(qf.parameters(), lr=args.learning_rate, fused=True, capturable=args.cudagraphs)
+    actor_optimizer = optim.Adam(actor.parameters(), lr=args.learning_rate, fused=True, capturable=args.cudagraphs)
 
     rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device)
+
+    def update(policy_step: bool):
+        """One training iteration on the batch at the buffer's drawn rows (the critics; every
+        --policy-frequency steps the actor and the target networks too)."""
+        with bf16_autocast(device, args.bf16):
+            batch = rb.batch()
+            qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
+            actor_loss = None
+            if policy_step:
+                actor_loss = update_actor(batch, actor, actor_optimizer, qf)
+                soft_update([target_actor, qf_target], [actor, qf], args.tau)
+        return qf_loss, qf_a_values, actor_loss
+
+    train = CudaGraph(update) if args.cudagraphs else update  # one graph per value of policy_step
 
     nets = {"actor": actor, "qf": qf, "target_actor": target_actor, "qf_target": qf_target}
     optimizers = {"q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer}
@@ -431,6 +490,8 @@ def main(args: Args):
         for name, net in nets.items():
             net.load_state_dict(checkpoint["nets"][name])
         for name, opt in optimizers.items():
+            for group in checkpoint["optimizers"][name]["param_groups"]:  # --cudagraphs may differ from the run's
+                group["capturable"] = args.cudagraphs
             opt.load_state_dict(checkpoint["optimizers"][name])
         rows = checkpoint["buffer"]["rows"]
         rb.storage[: len(rows)] = rows.to(device)
@@ -510,19 +571,21 @@ def main(args: Args):
 
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
+            policy_step, log_step = global_step % args.policy_frequency == 0, global_step % 100 == 0
             try:
-                with bf16_autocast(device, args.bf16):
-                    batch = rb.sample(args.batch_size)
-                    qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
-                    if global_step % args.policy_frequency == 0:
-                        actor_loss = update_actor(batch, actor, actor_optimizer, qf)
-                        soft_update([target_actor, qf_target], [actor, qf], args.tau)
+                rb.draw(args.batch_size)  # outside any graph: the buffer grows every step
+                qf_loss, qf_a_values, actor_loss = train(policy_step)
+                if args.cudagraphs and policy_step and log_step:  # a graph cannot stop on a value: check what it logs
+                    check_finite(qf_loss, "qf_loss")
+                    check_finite(actor_loss, "actor_loss")
             except NonFiniteError as quantity:
+                if args.cudagraphs:
+                    fail(f"{quantity} became non-finite by step {global_step} (--cudagraphs checks every 100 steps and keeps no last finite state; without it a run stops at the first bad update)")
                 path = os.path.join(run_dir, "last_good_state.pt")
                 write_checkpoint(path, snapshot(global_step))
                 fail(f"{quantity} became non-finite at step {global_step} (try a smaller --learning-rate); the last finite state is in {path}")
 
-            if global_step % args.policy_frequency == 0 and global_step % 100 == 0:
+            if policy_step and log_step:
                 writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
                 writer.add_scalar("losses/qf_loss", qf_loss.item() / len(qf_a_values), global_step)  # per critic, as CleanRL
                 writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)

@@ -40,11 +40,14 @@ KILL_CASES = [
     ("rnd", "Hopper-v4"),
     ("ebd", "dm_control/cartpole-swingup-v0"),
 ]
+# the recorded updates of --cudagraphs resume exactly too (the graphs are recorded anew after a resume)
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+GRAPH_KILL_CASES = [pytest.param(s, "Hopper-v4", "--cudagraphs", marks=needs_cuda, id=f"{s}-cudagraphs") for s in OFF_POLICY]
 
 
-@pytest.mark.parametrize("script, env_id", KILL_CASES)
-def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, env_id, tmp_path):
-    flags = ["--env-id", env_id, *short(script), "--save-model"]
+@pytest.mark.parametrize("script, env_id, extra", [(s, e, None) for s, e in KILL_CASES] + GRAPH_KILL_CASES)
+def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, env_id, extra, tmp_path):
+    flags = ["--env-id", env_id, *short(script), "--save-model", *([extra] if extra else [])]
     full = start(script, tmp_path, *flags, "--run-name", "full")
     killed = start(script, tmp_path, *flags, "--run-name", "killed", "--checkpoint-frequency", "500")
     checkpoint = tmp_path / "runs" / "killed" / "checkpoint.pt"
@@ -195,6 +198,7 @@ OFF_POLICY_BAD_INPUTS = [
     (["--learning-starts", "10"], "--learning-starts (10) must be >= --batch-size"),
     (["--tau", "0"], "--tau must be in (0, 1]"),
     (["--tau", "1.5"], "--tau must be in (0, 1]"),
+    (["--cudagraphs", "--no-cuda"], "--cudagraphs needs a CUDA GPU"),
 ]
 PPO_BAD_INPUTS = [
     (["--num-steps", "0"], "--num-steps must be > 0"),

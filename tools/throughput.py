@@ -14,7 +14,8 @@ it through tools/mkl_avx512.sh (MKL's AVX-512 kernels on AMD CPUs), e.g.
     PYTHONPATH=../cleanrl python tools/throughput.py td3 "../cleanrl-venv/bin/python ../cleanrl/cleanrl/td3_continuous_action.py"
 
 Every entry gets `--env-id E --total-timesteps N --learning-starts L --seed 1 --no-cuda` (no
-`--learning-starts` for a script without one, such as PPO, whose L steps are then ordinary ones);
+`--learning-starts` for a script without one, such as PPO, whose L steps are then ordinary ones;
+with `--cuda`, no `--no-cuda`: the entries run on the GPU, e.g. "td3 --cudagraphs");
 our own scripts also get a single evaluation episode at the end and a throw-away run folder.
 """
 import argparse
@@ -56,9 +57,9 @@ def has_random_phase(prefix: list) -> bool:
         return "learning_starts:" in f.read()
 
 
-def timed_run(entry: str, env_id: str, steps: int, learning_starts: int, threads: int, workdir: str) -> float:
+def timed_run(entry: str, env_id: str, steps: int, learning_starts: int, threads: int, workdir: str, cuda: bool = False) -> float:
     prefix, ours = command_of(entry)
-    flags = ["--env-id", env_id, "--total-timesteps", str(steps), "--seed", "1", "--no-cuda"]
+    flags = ["--env-id", env_id, "--total-timesteps", str(steps), "--seed", "1"] + ([] if cuda else ["--no-cuda"])
     if has_random_phase(prefix):
         flags += ["--learning-starts", str(learning_starts)]
     if ours:
@@ -80,6 +81,12 @@ def cpu_name() -> str:
         return platform.processor() or "unknown CPU"
 
 
+def gpu_name() -> str:
+    import torch
+
+    return torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU found"
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("entries", nargs="+", help="a short name (td3, sac, oparl, redq, ppo, rnd, ebd) | path/to/script.py | 'command prefix', each with optional flags")
@@ -89,6 +96,7 @@ def main(argv=None):
     parser.add_argument("--threads", type=int, default=1, help="torch/BLAS threads per run")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--baseline", default=None, help="the entry the ratios are relative to (default: the first)")
+    parser.add_argument("--cuda", action="store_true", help="let every entry use the GPU (no --no-cuda)")
     args = parser.parse_args(argv)
     for name, value in [("--steps", args.steps), ("--repeats", args.repeats), ("--threads", args.threads), ("--learning-starts", args.learning_starts)]:
         if value <= 0:
@@ -100,16 +108,17 @@ def main(argv=None):
     sps = {entry: [] for entry in args.entries}
     with tempfile.TemporaryDirectory() as workdir:
         for entry in args.entries:  # warm-up: file caches, first imports
-            timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir)
+            timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda)
         for repeat in range(args.repeats):
             for entry in args.entries:
-                short = timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir)
-                long = timed_run(entry, args.env_id, args.learning_starts + args.steps, args.learning_starts, args.threads, workdir)
+                short = timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda)
+                long = timed_run(entry, args.env_id, args.learning_starts + args.steps, args.learning_starts, args.threads, workdir, args.cuda)
                 sps[entry].append(args.steps / (long - short))
                 print(f"repeat {repeat + 1}/{args.repeats} {entry}: {sps[entry][-1]:.1f} steps/s", file=sys.stderr, flush=True)
 
     reference = statistics.median(sps[baseline])
-    print(f"\n{args.env_id}, {args.threads} thread(s), {args.steps} training steps after {args.learning_starts} random ones, median of {args.repeats}; {cpu_name()}\n")
+    device = gpu_name() if args.cuda else cpu_name()
+    print(f"\n{args.env_id}, {args.threads} thread(s), {args.steps} training steps after {args.learning_starts} random ones, median of {args.repeats}; {device}\n")
     print(f"| entry | steps/s (median) | range | vs `{baseline}` |")
     print("|---|---|---|---|")
     for entry, values in sps.items():

@@ -1,0 +1,88 @@
+"""--cudagraphs: the recorded updates learn what the eager ones learn, resume exactly, and refuse a CPU.
+
+The tests that need a GPU skip on a machine without CUDA (CI has none); run them on one with
+`python -m pytest tests/test_cudagraphs.py tests/test_reliability.py -k cudagraphs`."""
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from conftest import OFF_POLICY, REPO, cli_flags, load, scalars, small_args
+
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+LOSSES = ["losses/qf_loss", "losses/qf_values"]
+
+
+@needs_cuda
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_graphs_train_as_the_eager_updates_do(script, tmp_path, monkeypatch):
+    """Same seed, with and without --cudagraphs: the same losses at every logged step (the first
+    updates run eagerly as warm-up, the rest are replays) and the same final actor."""
+    monkeypatch.chdir(tmp_path)
+    module = load(script)
+    runs = {}
+    for graphs in (False, True):
+        args = small_args(module, env_id="Pendulum-v1", total_timesteps=800, learning_starts=300, eval_frequency=800, cudagraphs=graphs, run_name=f"graphs_{graphs}")
+        runs[graphs] = module.main(args)
+    eager, graphed = (scalars(runs[g]["run_dir"]) for g in (False, True))
+    for tag in LOSSES:
+        steps = [step for step, _ in eager[tag]]
+        assert steps == [step for step, _ in graphed[tag]] and len(steps) >= 4, tag
+        torch.testing.assert_close(torch.tensor([v for _, v in graphed[tag]]), torch.tensor([v for _, v in eager[tag]]), rtol=1e-4, atol=1e-5)
+    for (name, a), b in zip(runs[False]["actor"].state_dict().items(), runs[True]["actor"].state_dict().values()):
+        torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-4, msg=name)
+
+
+@needs_cuda
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_training_syncs_nothing_with_the_host_once_recorded(script, tmp_path, monkeypatch):
+    """From drawing a batch to the end of a replayed update the host waits for nothing: under torch's
+    'error' sync debug mode any .item(), host copy or NaN check there would raise."""
+    monkeypatch.chdir(tmp_path)
+    module = load(script)
+    args = small_args(module, env_id="Pendulum-v1", total_timesteps=400, learning_starts=300, eval_frequency=400, cudagraphs=True)
+    draw, call = module.ReplayBuffer.draw, module.CudaGraph.__call__
+    replays = []
+
+    def strict_draw(self, *shape):
+        torch.cuda.set_sync_debug_mode("error")  # on until the update returns
+        return draw(self, *shape)
+
+    def strict_call(self, *key):
+        try:
+            if key not in self.graphs:  # warm-up and recording may sync; replays must not
+                torch.cuda.set_sync_debug_mode("default")
+            else:
+                replays.append(key)
+            return call(self, *key)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+
+    monkeypatch.setattr(module.ReplayBuffer, "draw", strict_draw)
+    monkeypatch.setattr(module.CudaGraph, "__call__", strict_call)
+    module.main(args)
+    assert len(replays) > 50
+
+
+@needs_cuda
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_non_finite_loss_under_graphs_stops_at_a_logging_step(script, tmp_path):
+    flags = ["--env-id", "Pendulum-v1", *cli_flags(script, total_timesteps=800, learning_starts=100, batch_size=32, eval_frequency=800, eval_episodes=1)]
+    lr_flag = "--q-lr" if script in ("sac", "redq") else "--learning-rate"
+    command = [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags, lr_flag, "1e30", "--cudagraphs", "--run-name", "nan"]
+    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1
+    line = result.stderr.strip().splitlines()[-1]
+    assert line.startswith("error: ") and "became non-finite by step" in line and "--cudagraphs checks every 100 steps" in line
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_cudagraphs_without_a_gpu_is_refused_in_one_line(script, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    module = load(script)
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(module.parse_args(["--cudagraphs"]))
+    assert str(exit_info.value) == "error: --cudagraphs needs a CUDA GPU; torch finds none here"
