@@ -34,6 +34,20 @@ def test_throughput_runs_an_entry_prefixed_mkl_avx512_through_the_wrapper():
     assert result.returncode != 0 and "names no script or command" in result.stderr
 
 
+def test_throughput_runs_a_script_and_imports_given_relative_to_the_caller(tmp_path, monkeypatch):
+    """Entries run in a scratch folder; a relative script path and PYTHONPATH still mean the caller's."""
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "lib" / "marker.py").write_text("")
+    (tmp_path / "other").mkdir()
+    script = tmp_path / "other" / "script.py"  # imports from lib/, takes the tool's flags, does nothing
+    script.write_text("import sys, marker\nlearning_starts: int = 0\n")
+    monkeypatch.chdir(tmp_path)
+    env = {**os.environ, "PYTHONPATH": "lib"}
+    result = subprocess.run([sys.executable, os.path.join(REPO, "tools", "throughput.py"), "other/script.py", "--steps", "10", "--learning-starts", "10", "--repeats", "1"], capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "| `other/script.py` |" in result.stdout
+
+
 def test_throughput_refuses_bad_settings():
     result = tool("throughput.py", "td3", "--steps", "0")
     assert result.returncode != 0 and "--steps must be > 0" in result.stderr

@@ -38,7 +38,8 @@ def command_of(entry: str) -> tuple[list, bool]:
     wrapper = []
     if entry.startswith(MKL_AVX512):
         wrapper, entry = ["bash", os.path.join(REPO, "tools", "mkl_avx512.sh")], entry.removeprefix(MKL_AVX512)
-    words = shlex.split(entry)
+    # the runs start in a scratch folder: paths given relative to here must not change meaning there
+    words = [os.path.abspath(w) if not os.path.isabs(w) and os.path.sep in w and os.path.exists(w) else w for w in shlex.split(entry)]
     if not words:
         sys.exit(f"error: an entry names no script or command (got {MKL_AVX512 if wrapper else ''}{entry!r})")
     if words[0] in OURS:
@@ -65,6 +66,8 @@ def timed_run(entry: str, env_id: str, steps: int, learning_starts: int, threads
     if ours:
         flags += ["--eval-frequency", str(10**9), "--eval-episodes", "1", "--run-name", f"throughput_{time.time_ns()}"]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    if env.get("PYTHONPATH"):  # likewise for the entries' imports (e.g. PYTHONPATH=../cleanrl)
+        env["PYTHONPATH"] = os.pathsep.join(os.path.abspath(p) for p in env["PYTHONPATH"].split(os.pathsep) if p)
     start = time.perf_counter()
     result = subprocess.run(prefix + flags, cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     elapsed = time.perf_counter() - start
