@@ -257,10 +257,6 @@ class ReplayBuffer:
         obs, actions, next_obs, rewards, terminations = self.storage[self.indices].split(self.widths, dim=1)
         return Batch(obs, actions, next_obs, rewards.squeeze(1), terminations.squeeze(1))
 
-    def sample(self, batch_size: int) -> Batch:
-        self.draw(batch_size)
-        return self.batch()
-
 
 def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Args):
     """y = r + gamma * (1 - terminated) * min_i Q'_i(s', clip(pi_pes'(s') + clipped noise)): TD3's
@@ -287,7 +283,7 @@ class NonFiniteError(Exception):
 
 
 def check_finite(value: torch.Tensor, name: str):
-    if torch.cuda.is_available() and torch.cuda.is_current_stream_capturing():  # a graph cannot stop on a value: --cudagraphs checks when it logs
+    if value.is_cuda and torch.cuda.is_current_stream_capturing():  # a graph cannot stop on a value: --cudagraphs checks when it logs
         return
     if not torch.isfinite(value):
         raise NonFiniteError(name)

@@ -260,10 +260,6 @@ class ReplayBuffer:
         obs, actions, next_obs, rewards, terminations = self.storage[self.indices[i]].split(self.widths, dim=1)
         return Batch(obs, actions, next_obs, rewards.squeeze(1), terminations.squeeze(1))
 
-    def sample(self, batch_size: int) -> Batch:
-        self.draw(1, batch_size)
-        return self.batch(0)
-
 
 def td_target(batch: Batch, actor: Actor, qf_target: QEnsemble, alpha: torch.Tensor, args: Args):
     """y = r + gamma * (1 - terminated) * (min_{i in M} Q'_i(s', a') - alpha * log pi(a'|s')), a' ~ pi(.|s'),
@@ -286,7 +282,7 @@ class NonFiniteError(Exception):
 
 
 def check_finite(value: torch.Tensor, name: str):
-    if torch.cuda.is_available() and torch.cuda.is_current_stream_capturing():  # a graph cannot stop on a value: --cudagraphs checks when it logs
+    if value.is_cuda and torch.cuda.is_current_stream_capturing():  # a graph cannot stop on a value: --cudagraphs checks when it logs
         return
     if not torch.isfinite(value):
         raise NonFiniteError(name)

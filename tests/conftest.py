@@ -8,6 +8,7 @@ import pytest
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+import torch  # noqa: E402  (after the thread setting it reads)
 
 # the algorithm scripts, by short name; every script-level test runs on each of them
 SCRIPTS = ["td3", "oparl", "sac", "redq", "ppo", "rnd", "ebd"]
@@ -18,6 +19,19 @@ SHORT_ROLLOUTS = {"num_steps": 256, "num_minibatches": 4, "update_epochs": 2}
 QUICK = {"redq": {"utd_ratio": 2}, **{script: SHORT_ROLLOUTS for script in ON_POLICY}}
 # settings that only the off-policy scripts have; dropped for the others
 OFF_POLICY_ONLY = {"learning_starts", "batch_size"}
+
+
+# the tests that need a GPU skip elsewhere (CI has none), saying why
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+
+
+def script_command(script: str, *flags) -> list:
+    return [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags]
+
+
+def critic_lr_flag(script: str) -> str:
+    """The flag that sets a script's critic learning rate (e.g. to 1e30, to make a loss non-finite)."""
+    return "--q-lr" if script in ("sac", "redq") else "--learning-rate"
 
 
 def load(short_name: str):

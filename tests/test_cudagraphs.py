@@ -2,16 +2,13 @@
 
 The tests that need a GPU skip on a machine without CUDA (CI has none); run them on one with
 `python -m pytest tests/test_cudagraphs.py tests/test_reliability.py -k cudagraphs`."""
-import os
 import subprocess
-import sys
 
 import pytest
 import torch
 
-from conftest import OFF_POLICY, REPO, cli_flags, load, scalars, small_args
+from conftest import OFF_POLICY, cli_flags, critic_lr_flag, load, needs_cuda, scalars, script_command, small_args
 
-needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 LOSSES = ["losses/qf_loss", "losses/qf_values"]
 
 
@@ -70,8 +67,7 @@ def test_training_syncs_nothing_with_the_host_once_recorded(script, tmp_path, mo
 @pytest.mark.parametrize("script", OFF_POLICY)
 def test_non_finite_loss_under_graphs_stops_at_a_logging_step(script, tmp_path):
     flags = ["--env-id", "Pendulum-v1", *cli_flags(script, total_timesteps=800, learning_starts=100, batch_size=32, eval_frequency=800, eval_episodes=1)]
-    lr_flag = "--q-lr" if script in ("sac", "redq") else "--learning-rate"
-    command = [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags, lr_flag, "1e30", "--cudagraphs", "--run-name", "nan"]
+    command = script_command(script, *flags, critic_lr_flag(script), "1e30", "--cudagraphs", "--run-name", "nan")
     result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert result.returncode == 1
     line = result.stderr.strip().splitlines()[-1]

@@ -3,21 +3,16 @@ import os
 import random
 import signal
 import subprocess
-import sys
 import time
 
 import pytest
 import torch
 
-from conftest import OFF_POLICY, ON_POLICY, REPO, SCRIPTS, cli_flags, load, scalars
+from conftest import OFF_POLICY, ON_POLICY, SCRIPTS, cli_flags, critic_lr_flag, load, needs_cuda, scalars, script_command
 
 
 def short(script):
     return cli_flags(script, total_timesteps=2500, learning_starts=1000, batch_size=64, eval_frequency=500, eval_episodes=1)
-
-
-def script_command(script, *flags):
-    return [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags]
 
 
 def start(script, cwd, *flags):
@@ -41,7 +36,6 @@ KILL_CASES = [
     ("ebd", "dm_control/cartpole-swingup-v0"),
 ]
 # the recorded updates of --cudagraphs resume exactly too (the graphs are recorded anew after a resume)
-needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 GRAPH_KILL_CASES = [pytest.param(s, "Hopper-v4", "--cudagraphs", marks=needs_cuda, id=f"{s}-cudagraphs") for s in OFF_POLICY]
 
 
@@ -171,8 +165,7 @@ def test_bf16_off_keeps_float32(script):
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_non_finite_loss_stops_with_the_step_and_the_last_good_state(script, tmp_path):
     flags = ["--env-id", "Pendulum-v1", *cli_flags(script, total_timesteps=600, learning_starts=100, batch_size=32, eval_frequency=600, eval_episodes=1)]
-    lr_flag = "--q-lr" if script in ("sac", "redq") else "--learning-rate"
-    result = subprocess.run(script_command(script, *flags, lr_flag, "1e30", "--run-name", "nan"), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(script_command(script, *flags, critic_lr_flag(script), "1e30", "--run-name", "nan"), cwd=tmp_path, capture_output=True, text=True, timeout=300)
     line = one_line_error(result)
     assert "became non-finite at step" in line and "last_good_state.pt" in line
     state = torch.load(tmp_path / "runs" / "nan" / "last_good_state.pt", weights_only=True)

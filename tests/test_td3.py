@@ -20,7 +20,9 @@ def filled_buffer(capacity=10, rows=7):
 
 def test_replay_buffer_samples_whole_transitions():
     torch.manual_seed(0)
-    batch = filled_buffer().sample(500)
+    rb = filled_buffer()
+    rb.draw(500)
+    batch = rb.batch()
     i = batch.observations[:, 0]
     assert set(i.tolist()) == set(range(7))
     torch.testing.assert_close(batch.observations, i[:, None].expand(-1, OBS_DIM))
@@ -35,7 +37,8 @@ def test_replay_buffer_overwrites_the_oldest_rows_when_full():
     torch.manual_seed(0)
     rb = filled_buffer(capacity=5, rows=7)
     assert rb.size == 5 and rb.pos == 2
-    assert set(rb.sample(500).observations[:, 0].tolist()) == {2, 3, 4, 5, 6}
+    rb.draw(500)
+    assert set(rb.batch().observations[:, 0].tolist()) == {2, 3, 4, 5, 6}
 
 
 def test_q_ensemble_members_are_independent_mlps():
