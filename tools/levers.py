@@ -142,7 +142,11 @@ def main(argv=None):
         idx = np.random.randint(0, capacity, BATCH)
         return [torch.as_tensor(f[idx]) for f in numpy_fields]
 
-    row("replay sample: numpy arrays per field -> one gather from one tensor", 1, numpy_sample, lambda: rb.sample(BATCH))
+    def tensor_sample():  # ours: draw the rows, one gather
+        rb.draw(BATCH)
+        return rb.batch()
+
+    row("replay sample: numpy arrays per field -> one gather from one tensor", 1, numpy_sample, tensor_sample)
 
     a, b = torch.randn(256, 256), torch.randn(256, 256)
     rates = {}
