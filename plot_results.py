@@ -287,7 +287,8 @@ def plot_iqm(stats: dict, path: str, normalisation: str = "DMC return / 1000"):
         ax.plot([value], [i], "|", color="black", markersize=16)
     ax.set_yticks(range(len(algos)), [f"{a}\n{stats[a][4]} runs, {stats[a][3]} tasks" for a in algos])
     ax.set_ylim(len(algos) - 0.5, -0.5)
-    ax.set_xlabel(f"IQM of normalised score ({normalisation})\nline: 95% stratified bootstrap confidence interval")
+    scale_lines = normalisation.replace("; ", "\n")  # one line per kind of task, so the label fits the figure
+    ax.set_xlabel(f"IQM of normalised score\n{scale_lines}\nline: 95% stratified bootstrap confidence interval")
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
