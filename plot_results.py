@@ -287,11 +287,11 @@ def plot_iqm(stats: dict, path: str, normalisation: str = "DMC return / 1000"):
         ax.plot([value], [i], "|", color="black", markersize=16)
     ax.set_yticks(range(len(algos)), [f"{a}\n{stats[a][4]} runs, {stats[a][3]} tasks" for a in algos])
     ax.set_ylim(len(algos) - 0.5, -0.5)
-    scale_lines = normalisation.replace("; ", "\n")  # one line per kind of task, so the label fits the figure
+    scale_lines = normalisation.replace("; ", "\n")  # one line per kind of task
     ax.set_xlabel(f"IQM of normalised score\n{scale_lines}\nline: 95% stratified bootstrap confidence interval")
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")  # widen the image to a label longer than the axes
     plt.close(fig)
 
 

@@ -285,3 +285,14 @@ def test_random_scores_file_errors_are_one_line(mujoco_sweep, tmp_path):
     for path, message in [(str(tmp_path / "missing.csv"), "no such file"), (str(bad), "needs the columns env_id and random_return")]:
         with pytest.raises(SystemExit, match=message):
             pr.main([root, "--out", str(tmp_path / "out"), "--random-scores", path])
+
+
+def test_iqm_figure_widens_to_a_label_longer_than_the_axes(tmp_path):
+    import matplotlib.image
+
+    stats = {"oparl": (0.5, 0.4, 0.6, 2, 6), "td3": (0.3, 0.2, 0.4, 2, 6)}
+    short, long = str(tmp_path / "short.png"), str(tmp_path / "long.png")
+    pr.plot_iqm(stats, short, normalisation="DMC return / 1000")
+    pr.plot_iqm(stats, long, normalisation="a very long description of how some other kind of task is normalised " * 2)
+    short_width, long_width = (matplotlib.image.imread(path).shape[1] for path in (short, long))
+    assert long_width > short_width + 200  # the whole label is in the image, not cut at the figure's edge
