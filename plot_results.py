@@ -24,6 +24,7 @@ Writes into --out:
 An algorithm is named by its script (exp_name without `_continuous_action`); runs of one script with
 different hyperparameters (an ablation) get the differing flags appended, e.g. `oparl (q_num=2)`.
 """
+
 import argparse
 import csv
 import os
@@ -37,7 +38,21 @@ TAG = "eval/episodic_return"
 PAPER_TABLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paper", "paper_table1.csv")
 PAPER_CLAIMS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paper", "paper_mujoco_claims.csv")
 # hyperparameters that do not change what a run learns, or that identify it rather than its algorithm
-NOT_ALGORITHM = {"seed", "env_id", "exp_name", "run_name", "resume", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda", "torch_deterministic"}
+NOT_ALGORITHM = {
+    "seed",
+    "env_id",
+    "exp_name",
+    "run_name",
+    "resume",
+    "checkpoint_frequency",
+    "track",
+    "wandb_project_name",
+    "wandb_entity",
+    "capture_video",
+    "save_model",
+    "cuda",
+    "torch_deterministic",
+}
 SMOOTHING = 10  # evaluations: 50k steps of a 1M-step run at one evaluation per 5000
 BOOTSTRAP_REPS = 2000
 
@@ -244,7 +259,11 @@ def score_scales(runs: list, random_scores: dict) -> dict:
 
 def normalised_scores(complete: dict, algo: str, envs: set, scales: dict) -> list:
     """Per task in `envs`, the normalised final returns of `algo`'s runs."""
-    return [(np.array([r.returns[-1] for r in group]) - scales[env][0]) / (scales[env][1] - scales[env][0]) for (a, env), group in sorted(complete.items()) if a == algo and env in envs]
+    return [
+        (np.array([r.returns[-1] for r in group]) - scales[env][0]) / (scales[env][1] - scales[env][0])
+        for (a, env), group in sorted(complete.items())
+        if a == algo and env in envs
+    ]
 
 
 def aggregate(complete: dict, algos: list, scales: dict) -> dict:
@@ -256,12 +275,19 @@ def aggregate(complete: dict, algos: list, scales: dict) -> dict:
     left_out = set().union(*per_algo) - shared
     if left_out:
         kind = "DMC tasks" if all(e.startswith("dm_control/") for e in scales) else "normalised tasks"
-        warn(f"IQM only over the {kind} every algorithm has finished ({len(shared)}); left out: {', '.join(sorted(e.removeprefix('dm_control/') for e in left_out))}")
+        warn(
+            f"IQM only over the {kind} every algorithm has finished ({len(shared)}); left out: {', '.join(sorted(e.removeprefix('dm_control/') for e in left_out))}"
+        )
     result = {}
     for algo in algos:
         scores = normalised_scores(complete, algo, shared, scales)
         if scores:
-            result[algo] = (iqm(np.concatenate(scores)), *stratified_bootstrap_ci(scores), len(scores), sum(len(s) for s in scores))
+            result[algo] = (
+                iqm(np.concatenate(scores)),
+                *stratified_bootstrap_ci(scores),
+                len(scores),
+                sum(len(s) for s in scores),
+            )
     return result
 
 
@@ -324,9 +350,13 @@ def write_table(complete: dict, stats: dict, paper: dict, path: str, claims: dic
     budgets = sorted(set(steps.values()))
     paper = {env: row for env, row in paper.items() if env in envs}  # Table 1 has no MuJoCo rows
     paper_algos = [a for a in ("oparl", "redq", "sac", "td3") if any(f"{a}_mean" in row for row in paper.values())]
-    lines = [f"Final evaluation return (mean +- std over seeds; seeds per cell in parentheses) at {' / '.join(map(str, budgets))} steps."]
+    lines = [
+        f"Final evaluation return (mean +- std over seeds; seeds per cell in parentheses) at {' / '.join(map(str, budgets))} steps."
+    ]
     if paper:
-        lines.append("Columns marked *paper* are the paper's Table 1 (1M steps, 10 seeds), copied for reference: a different budget.")
+        lines.append(
+            "Columns marked *paper* are the paper's Table 1 (1M steps, 10 seeds), copied for reference: a different budget."
+        )
     lines.append("")
     header = ["task", *algos, *(f"{a} *paper*" for a in paper_algos)]
     lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -360,39 +390,67 @@ def write_table(complete: dict, stats: dict, paper: dict, path: str, claims: dic
             if a != "oparl":
                 lines.append(f"- OPARL vs {a}: {100 * (averages['oparl'] / averages[a] - 1):+.1f}% on the average row")
     seeds = sorted({r.seed for group in complete.values() for r in group})
-    lines += ["", "Final evaluation return per seed:", "", "| task | algorithm | " + " | ".join(f"seed {s}" for s in seeds) + " |", "|---|---|" + "---|" * len(seeds)]
+    lines += [
+        "",
+        "Final evaluation return per seed:",
+        "",
+        "| task | algorithm | " + " | ".join(f"seed {s}" for s in seeds) + " |",
+        "|---|---|" + "---|" * len(seeds),
+    ]
     for env in envs:
         for a in algos:
             by_seed = {r.seed: r.returns[-1] for r in complete.get((a, env), [])}
             if by_seed:
-                lines.append(f"| {env.removeprefix('dm_control/')} | {a} | " + " | ".join(f"{by_seed[s]:.1f}" if s in by_seed else "" for s in seeds) + " |")
+                lines.append(
+                    f"| {env.removeprefix('dm_control/')} | {a} | "
+                    + " | ".join(f"{by_seed[s]:.1f}" if s in by_seed else "" for s in seeds)
+                    + " |"
+                )
     baselines = [a for a in algos if a != "oparl"]
     if "oparl" in algos and baselines:
         claims = {key: value for key, value in (claims or {}).items() if key[0] in envs}
-        lines += ["", "OPARL's final return against each baseline's, per task: OPARL mean / baseline mean - 1 (n/a where the baseline's mean is not positive)"
-                  + ("; the paper's claim, at 1M steps, in parentheses:" if claims else ":"), ""]
+        lines += [
+            "",
+            "OPARL's final return against each baseline's, per task: OPARL mean / baseline mean - 1 (n/a where the baseline's mean is not positive)"
+            + ("; the paper's claim, at 1M steps, in parentheses:" if claims else ":"),
+            "",
+        ]
         lines += ["| task | " + " | ".join(f"vs {b}" for b in baselines) + " |", "|---|" + "---|" * len(baselines)]
         for env in envs:
             if ("oparl", env) not in cell:
                 continue
             row = []
             for b in baselines:
-                text = f"{100 * (cell[('oparl', env)].mean() / cell[(b, env)].mean() - 1):+.1f}%" if (b, env) in cell and cell[(b, env)].mean() > 0 else ("n/a" if (b, env) in cell else "")
+                text = (
+                    f"{100 * (cell[('oparl', env)].mean() / cell[(b, env)].mean() - 1):+.1f}%"
+                    if (b, env) in cell and cell[(b, env)].mean() > 0
+                    else ("n/a" if (b, env) in cell else "")
+                )
                 row.append(text + (f" (paper: {claims[(env, b)]:+.2f}%)" if (env, b) in claims else ""))
             lines.append(f"| {env.removeprefix('dm_control/')} | " + " | ".join(row) + " |")
     if stats:
         scales = scales or {}
         normalisation = normalisation_text({env: scales[env] for env in envs if env in scales})
         kind = "DMC tasks" if normalisation == "DMC return / 1000" else "normalised tasks"
-        lines += ["", f"Interquartile mean of normalised scores ({normalisation}) over all runs of the {kind} every algorithm has finished, 95% stratified bootstrap CI:", ""]
+        lines += [
+            "",
+            f"Interquartile mean of normalised scores ({normalisation}) over all runs of the {kind} every algorithm has finished, 95% stratified bootstrap CI:",
+            "",
+        ]
         lines += ["| algorithm | IQM | 95% CI | tasks | runs |", "|---|---|---|---|---|"]
         for a in algo_order(stats):
             value, low, high, tasks, runs = stats[a]
             lines.append(f"| {a} | {value:.3f} | [{low:.3f}, {high:.3f}] | {tasks} | {runs} |")
         scaled = [env for env in envs if env in scales and not env.startswith("dm_control/")]
         if scaled:
-            lines += ["", "The scale of each task's normalised score (0: the random policy, 1: the best evaluation return of any run read):", ""]
-            lines += ["| task | random policy | best seen |", "|---|---|---|"] + [f"| {env} | {scales[env][0]:.1f} | {scales[env][1]:.1f} |" for env in scaled]
+            lines += [
+                "",
+                "The scale of each task's normalised score (0: the random policy, 1: the best evaluation return of any run read):",
+                "",
+            ]
+            lines += ["| task | random policy | best seen |", "|---|---|---|"] + [
+                f"| {env} | {scales[env][0]:.1f} | {scales[env][1]:.1f} |" for env in scaled
+            ]
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
 
@@ -412,16 +470,34 @@ def write_csvs(runs: list, series_path: str, final_path: str):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("sources", nargs="+", help="folders of TensorBoard runs (e.g. runs) and/or eval_series.csv files written by this script; a run found twice keeps its longer record")
+    parser.add_argument(
+        "sources",
+        nargs="+",
+        help="folders of TensorBoard runs (e.g. runs) and/or eval_series.csv files written by this script; a run found twice keeps its longer record",
+    )
     parser.add_argument("--out", default="results", help="output folder")
     parser.add_argument("--prefix", default="", help="prefix of every output file name, e.g. ablation_")
     parser.add_argument("--algos", nargs="+", help="only these algorithms (names as in the table)")
     parser.add_argument("--env-ids", nargs="+", help="only these environments")
-    parser.add_argument("--paper-table", default=PAPER_TABLE, help="the paper's Table 1 as CSV (default: paper/paper_table1.csv)")
-    parser.add_argument("--paper-claims", default=PAPER_CLAIMS, help="the paper's stated gains of OPARL over each baseline, as CSV (default: paper/paper_mujoco_claims.csv)")
+    parser.add_argument(
+        "--paper-table", default=PAPER_TABLE, help="the paper's Table 1 as CSV (default: paper/paper_table1.csv)"
+    )
+    parser.add_argument(
+        "--paper-claims",
+        default=PAPER_CLAIMS,
+        help="the paper's stated gains of OPARL over each baseline, as CSV (default: paper/paper_mujoco_claims.csv)",
+    )
     parser.add_argument("--no-paper", action="store_true", help="leave out the paper's numbers")
-    parser.add_argument("--random-scores", help="CSV of env_id,random_return (tools/random_scores.py): normalise those non-DMC tasks from the random policy (0) to the best evaluation seen (1) for the IQM")
-    parser.add_argument("--smoothing", type=int, default=SMOOTHING, help="trailing window of the curves, in evaluations (1: raw curves); the table and IQM use the raw final evaluation")
+    parser.add_argument(
+        "--random-scores",
+        help="CSV of env_id,random_return (tools/random_scores.py): normalise those non-DMC tasks from the random policy (0) to the best evaluation seen (1) for the IQM",
+    )
+    parser.add_argument(
+        "--smoothing",
+        type=int,
+        default=SMOOTHING,
+        help="trailing window of the curves, in evaluations (1: raw curves); the table and IQM use the raw final evaluation",
+    )
     parser.add_argument("--finished-only", action="store_true", help="from runs folders, only runs benchmark.sh marked DONE")
     args = parser.parse_args(argv)
     if args.smoothing < 1:
@@ -429,7 +505,11 @@ def main(argv=None):
 
     merged = {}
     for source in args.sources:
-        found = read_csv(source) if os.path.isfile(source) and source.endswith(".csv") else read_tensorboard(source, args.finished_only)
+        found = (
+            read_csv(source)
+            if os.path.isfile(source) and source.endswith(".csv")
+            else read_tensorboard(source, args.finished_only)
+        )
         for run in found:
             key = (run.algo, run.env_id, run.seed)
             if key not in merged or len(run.steps) > len(merged[key].steps):
@@ -441,7 +521,9 @@ def main(argv=None):
         if wanted:
             unknown = set(wanted) - {getattr(r, key) for r in runs}
             if unknown:
-                fail(f"{name}: {', '.join(sorted(unknown))} not found; the runs have {', '.join(sorted({getattr(r, key) for r in runs}))}")
+                fail(
+                    f"{name}: {', '.join(sorted(unknown))} not found; the runs have {', '.join(sorted({getattr(r, key) for r in runs}))}"
+                )
             runs = [r for r in runs if getattr(r, key) in wanted]
     paper = {} if args.no_paper or not os.path.isfile(args.paper_table) else read_paper_table(args.paper_table)
     claims = {} if args.no_paper or not os.path.isfile(args.paper_claims) else read_paper_claims(args.paper_claims)
@@ -456,11 +538,15 @@ def main(argv=None):
     if stats:
         plot_iqm(stats, out("iqm.png"), normalisation_text({env: scales[env] for _, env in complete if env in scales}))
     else:
-        print("no normalisable task among the runs, so no IQM plot (DMC returns are normalised by 1000; give --random-scores for other tasks)")
+        print(
+            "no normalisable task among the runs, so no IQM plot (DMC returns are normalised by 1000; give --random-scores for other tasks)"
+        )
     write_csvs(all_runs, os.path.join(args.out, "eval_series.csv"), os.path.join(args.out, "final_returns.csv"))
     written = [out(name) for name in ["curves.png", "table.md", *(["iqm.png"] if stats else [])]]
     written += [os.path.join(args.out, name) for name in ("eval_series.csv", "final_returns.csv")]
-    print(f"{len(runs)} runs of {len({r.algo for r in runs})} algorithm(s) on {len({r.env_id for r in runs})} env(s) -> {', '.join(written)}")
+    print(
+        f"{len(runs)} runs of {len({r.algo for r in runs})} algorithm(s) on {len({r.env_id for r in runs})} env(s) -> {', '.join(written)}"
+    )
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@
 # trained predictor, MLPs on the next observation; the predictor's error is an intrinsic reward with its
 # own value head and its own non-episodic GAE. `diff ppo_continuous_action.py rnd_continuous_action.py`
 # shows exactly what RND adds to PPO.
+import dataclasses
 import difflib
 import os
 import random
@@ -30,7 +31,7 @@ class Args:
     seed: int = 1
     """seed of the experiment"""
     torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=False`"""
+    """whether to set `torch.backends.cudnn.deterministic` (`--no-torch-deterministic` leaves it off)"""
     cuda: bool = True
     """if toggled, cuda will be enabled by default (falls back to the CPU when no GPU is found)"""
     track: bool = False
@@ -101,84 +102,6 @@ class Args:
     """evaluate the deterministic policy (its mean action, with the training observation statistics) every this many steps"""
     eval_episodes: int = 10
     """the number of episodes per evaluation"""
-
-
-def fail(message: str):
-    """Stop with one line on stderr and exit status 1, no traceback."""
-    raise SystemExit("error: " + " ".join(message.split()))
-
-
-def check_args(args: Args):
-    checks = [
-        (args.total_timesteps > 0, f"--total-timesteps must be > 0, got {args.total_timesteps}"),
-        (args.num_steps > 0, f"--num-steps must be > 0, got {args.num_steps}"),
-        (
-            args.total_timesteps >= args.num_steps,
-            f"--total-timesteps ({args.total_timesteps}) must be >= --num-steps ({args.num_steps}), one rollout",
-        ),
-        (
-            1 <= args.num_minibatches <= args.num_steps,
-            f"--num-minibatches must be in [1, --num-steps ({args.num_steps})], got {args.num_minibatches}",
-        ),
-        (args.update_epochs > 0, f"--update-epochs must be > 0, got {args.update_epochs}"),
-        (args.learning_rate > 0, f"--learning-rate must be > 0, got {args.learning_rate}"),
-        (0 <= args.gamma <= 1, f"--gamma must be in [0, 1], got {args.gamma}"),
-        (0 <= args.gae_lambda <= 1, f"--gae-lambda must be in [0, 1], got {args.gae_lambda}"),
-        (args.clip_coef > 0, f"--clip-coef must be > 0, got {args.clip_coef}"),
-        (args.ent_coef >= 0, f"--ent-coef must be >= 0, got {args.ent_coef}"),
-        (args.vf_coef >= 0, f"--vf-coef must be >= 0, got {args.vf_coef}"),
-        (args.max_grad_norm > 0, f"--max-grad-norm must be > 0, got {args.max_grad_norm}"),
-        (args.target_kl is None or args.target_kl > 0, f"--target-kl must be > 0, got {args.target_kl}"),
-        (args.eval_frequency > 0, f"--eval-frequency must be > 0, got {args.eval_frequency}"),
-        (args.eval_episodes > 0, f"--eval-episodes must be > 0, got {args.eval_episodes}"),
-        (args.checkpoint_frequency >= 0, f"--checkpoint-frequency must be >= 0, got {args.checkpoint_frequency}"),
-        (0 < args.update_proportion <= 1, f"--update-proportion must be in (0, 1], got {args.update_proportion}"),
-        (args.int_coef >= 0, f"--int-coef must be >= 0, got {args.int_coef}"),
-        (args.ext_coef >= 0, f"--ext-coef must be >= 0, got {args.ext_coef}"),
-        (0 <= args.int_gamma <= 1, f"--int-gamma must be in [0, 1], got {args.int_gamma}"),
-        (args.num_iterations_obs_norm_init >= 0, f"--num-iterations-obs-norm-init must be >= 0, got {args.num_iterations_obs_norm_init}"),
-    ]
-    for ok, message in checks:
-        if not ok:
-            fail(message)
-
-
-def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
-    return gym.spaces.Box(space.low.astype(np.float32), space.high.astype(np.float32), dtype=np.float32)
-
-
-def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_every: int = 1):
-    """One environment with a flat float32 observation and a float32 Box action space.
-
-    A plain (not vectorised) env: the loop sees the true final observation of every episode and
-    resets itself, so no autoreset step can end up in the replay buffer."""
-    if env_id.startswith("dm_control/"):
-        import shimmy  # registers the DeepMind Control tasks as dm_control/<domain>-<task>-v0
-
-        gym.register_envs(shimmy)
-    if env_id not in gym.registry:
-        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
-        hint = f"did you mean {', '.join(close)}?" if close else "use e.g. Hopper-v4 or dm_control/cartpole-swingup-v0"
-        fail(f"unknown --env-id {env_id!r}; {hint}")
-    try:
-        env = gym.make(env_id, render_mode="rgb_array" if video_folder else None)
-    except Exception as e:  # a registered id whose dependencies are missing, e.g. Hopper-v3 (mujoco-py)
-        fail(f"could not create --env-id {env_id!r}: {type(e).__name__}: {e}")
-    if not isinstance(env.action_space, gym.spaces.Box):
-        fail(f"--env-id {env_id!r} has a {type(env.action_space).__name__} action space; only continuous (Box) actions are supported")
-    if not (np.isfinite(env.action_space.low).all() and np.isfinite(env.action_space.high).all()):
-        fail(f"--env-id {env_id!r} has unbounded actions; the policies here act within finite bounds")
-    if isinstance(env.observation_space, gym.spaces.Dict):  # DeepMind Control observations are dicts of arrays
-        env = gym.wrappers.FlattenObservation(env)
-    env = gym.wrappers.TransformObservation(env, lambda obs: obs.astype(np.float32), float32_box(env.observation_space))
-    if env.action_space.dtype != np.float32:  # DeepMind Control declares float64 actions
-        to_env_dtype = lambda action, dtype=env.action_space.dtype: np.asarray(action, dtype=dtype)  # noqa: E731
-        env = gym.wrappers.TransformAction(env, to_env_dtype, float32_box(env.action_space))
-    env = gym.wrappers.RecordEpisodeStatistics(env)
-    if video_folder:
-        env = gym.wrappers.RecordVideo(env, video_folder, episode_trigger=lambda episode: episode % video_every == 0)
-    env.action_space.seed(seed)
-    return env
 
 
 # ALGO LOGIC: initialize agent here:
@@ -316,10 +239,10 @@ class Normalizer:
 
 
 class IntrinsicNormalizer:
-    """RND's own statistics (CleanRL's obs_rms, RewardForwardFilter and reward_rms): observations normalised by
-    their running mean and std and clipped to [-5, 5], updated once per rollout; intrinsic rewards divided by
-    the running std of their discounted sum, which runs on across episode ends (the intrinsic return is
-    non-episodic)."""
+    """The intrinsic reward's own statistics (CleanRL's obs_rms, RewardForwardFilter and reward_rms): observations
+    normalised by their running mean and std and clipped to [-5, 5], updated once per rollout; intrinsic rewards
+    divided by the running std of their discounted sum, which runs on across episode ends (the intrinsic return
+    is non-episodic)."""
 
     def __init__(self, obs_dim: int, int_gamma: float):
         self.obs_rms, self.int_rms = RunningMeanStd((obs_dim,)), RunningMeanStd()
@@ -360,11 +283,22 @@ class Rollout:
 
     def __init__(self, num_steps: int, obs_dim: int, action_dim: int, device: torch.device):
         self.obs = torch.zeros((num_steps, obs_dim), device=device)
-        self.actions, self.raw_next_obs = torch.zeros((num_steps, action_dim), device=device), torch.zeros((num_steps, obs_dim), device=device)
-        self.logprobs, self.rewards, self.episode_ends, self.values, self.int_values = (torch.zeros(num_steps, device=device) for _ in range(5))
+        self.actions = torch.zeros((num_steps, action_dim), device=device)
+        self.logprobs, self.rewards, self.episode_ends, self.values = (torch.zeros(num_steps, device=device) for _ in range(4))
+        self.int_values = torch.zeros(num_steps, device=device)
+        self.raw_next_obs = torch.zeros((num_steps, obs_dim), device=device)
 
-    def fields(self) -> dict:
-        return {"obs": self.obs, "actions": self.actions, "logprobs": self.logprobs, "rewards": self.rewards, "episode_ends": self.episode_ends, "values": self.values, "int_values": self.int_values, "raw_next_obs": self.raw_next_obs}
+    def add(self, t: int, **values):
+        """Stores step t's values, by field name."""
+        for name, value in values.items():
+            getattr(self, name)[t] = value
+
+    def state_dict(self) -> dict:
+        return {name: field.cpu().clone() for name, field in vars(self).items()}
+
+    def load_state_dict(self, state: dict):
+        for name, field in vars(self).items():
+            field.copy_(state[name])
 
 
 def compute_gae(rewards, values, episode_ends, next_value, gamma: float, gae_lambda: float):
@@ -385,9 +319,10 @@ def advantages_and_returns(rollout: Rollout, int_rewards, next_values, args: Arg
     stream over the agent's lifetime, and an episode's end should not look rewarding or costly to it
     (Burda et al. 2019, Section 2.3)."""
     next_ext_value, next_int_value = next_values
-    ext_advantages, ext_returns = compute_gae(rollout.rewards, rollout.values, rollout.episode_ends, next_ext_value, args.gamma, args.gae_lambda)
-    int_advantages, int_returns = compute_gae(int_rewards, rollout.int_values, torch.zeros_like(rollout.episode_ends), next_int_value, args.int_gamma, args.gae_lambda)
-    return args.ext_coef * ext_advantages + args.int_coef * int_advantages, ext_returns, int_returns
+    ends, no_ends = rollout.episode_ends, torch.zeros_like(rollout.episode_ends)
+    ext_adv, ext_ret = compute_gae(rollout.rewards, rollout.values, ends, next_ext_value, args.gamma, args.gae_lambda)
+    int_adv, int_ret = compute_gae(int_rewards, rollout.int_values, no_ends, next_int_value, args.int_gamma, args.gae_lambda)
+    return args.ext_coef * ext_adv + args.int_coef * int_adv, ext_ret, int_ret
 
 
 def ppo_loss(agent: Agent, obs, actions, old_logprobs, advantages, returns, old_values, int_returns, args: Args):
@@ -423,16 +358,7 @@ def ppo_loss(agent: Agent, obs, actions, old_logprobs, advantages, returns, old_
     return loss, stats
 
 
-class NonFiniteError(Exception):
-    """A loss became NaN or infinite; raised before the optimizer step it would have poisoned."""
-
-
-def check_finite(value: torch.Tensor, name: str):
-    if not torch.isfinite(value):
-        raise NonFiniteError(name)
-
-
-def update_policy(rollout: Rollout, advantages, returns, int_returns, rnd_obs, agent: Agent, rnd_model: RNDModel, optimizer, args: Args) -> dict:
+def update_policy(rollout, advantages, returns, int_returns, rnd_obs, agent, rnd_model, optimizer, args: Args) -> dict:
     """update_epochs passes over the rollout in num_minibatches shuffled minibatches; the predictor learns
     in the same steps, on its share of each minibatch, through the same optimizer (as CleanRL)."""
     minibatch_size = args.num_steps // args.num_minibatches
@@ -441,7 +367,17 @@ def update_policy(rollout: Rollout, advantages, returns, int_returns, rnd_obs, a
         order = torch.randperm(args.num_steps, device=advantages.device)
         for start in range(0, minibatch_size * args.num_minibatches, minibatch_size):
             mb = order[start : start + minibatch_size]
-            loss, stats = ppo_loss(agent, rollout.obs[mb], rollout.actions[mb], rollout.logprobs[mb], advantages[mb], returns[mb], rollout.values[mb], int_returns[mb], args)
+            loss, stats = ppo_loss(
+                agent,
+                rollout.obs[mb],
+                rollout.actions[mb],
+                rollout.logprobs[mb],
+                advantages[mb],
+                returns[mb],
+                rollout.values[mb],
+                int_returns[mb],
+                args,
+            )
             rnd_loss = rnd_model.loss(rnd_obs[mb], args.update_proportion)
             loss, stats["rnd_loss"] = loss + rnd_loss, rnd_loss.detach()
             check_finite(loss, "loss")
@@ -475,11 +411,352 @@ def evaluate(agent: Agent, normalizer: Normalizer, env: gym.Env, num_episodes: i
     return returns
 
 
+def main(args: Args):
+    checkpoint = load_checkpoint(args.resume) if args.resume else None
+    default_name = f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_dir = os.path.normpath(args.resume) if args.resume else os.path.join("runs", args.run_name or default_name)
+    run_name = os.path.basename(run_dir)
+    if checkpoint and checkpoint["global_step"] >= args.total_timesteps:
+        print(f"{run_dir} had already finished its {args.total_timesteps} steps")
+        return {"run_dir": run_dir, "eval_returns": checkpoint["eval_returns"]}
+
+    # TRY NOT TO MODIFY: seeding
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
+        os.environ.setdefault("MUJOCO_GL", "disable")
+
+    # env setup: the evaluation env is seeded apart from the training env
+    env = make_env(args.env_id, args.seed)
+    eval_seed = args.seed + 100
+    video_folder = f"videos/{run_name}" if args.capture_video else None
+    eval_env = make_env(args.env_id, eval_seed, video_folder, video_every=args.eval_episodes)
+    obs_dim = int(np.prod(env.observation_space.shape))
+    action_dim = int(np.prod(env.action_space.shape))
+
+    agent = Agent(obs_dim, action_dim).to(device)
+    rnd_model = RNDModel(obs_dim).to(device)
+    optimizer = optim.Adam([*agent.parameters(), *rnd_model.predictor.parameters()], lr=args.learning_rate, eps=1e-5)
+    normalizer = Normalizer(obs_dim, args.gamma)
+    intrinsic_normalizer = IntrinsicNormalizer(obs_dim, args.int_gamma)
+    rollout = Rollout(args.num_steps, obs_dim, action_dim, device)
+    num_iterations = args.total_timesteps // args.num_steps  # a last partial rollout is collected but not learned from
+
+    nets, optimizers = {"agent": agent, "rnd_model": rnd_model}, {"optimizer": optimizer}
+    # with the networks and optimizers, what a checkpoint holds
+    parts = {"rollout": rollout, "normalizer": normalizer, "intrinsic_normalizer": intrinsic_normalizer}
+    start_step, eval_returns = 0, []  # eval_returns: (step, mean return) of every evaluation
+    if checkpoint:
+        restore(checkpoint, env, nets, optimizers, **parts)
+        start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
+    else:  # CleanRL's warm-up: the observation statistics start from random actions' observations
+        env.reset(seed=args.seed)
+        warmup_obs = []
+        for _ in range(args.num_iterations_obs_norm_init * args.num_steps):
+            raw_obs, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            warmup_obs.append(raw_obs)
+            if terminated or truncated:
+                env.reset()
+        if warmup_obs:
+            intrinsic_normalizer.obs_rms.update_batch(np.array(warmup_obs, dtype=np.float64))
+
+    def state(step: int) -> dict:  # a checkpoint
+        return snapshot(args, env, step, nets, optimizers, **parts, eval_returns=eval_returns)
+
+    writer, pbar = start_logging(args, run_name, run_dir, start_step, device)
+    sps_time, sps_step, sps = time.time(), start_step, 0.0
+    next_checkpoint = start_step + args.checkpoint_frequency
+
+    def run_evaluation(step: int):
+        returns = evaluate(agent, normalizer, eval_env, args.eval_episodes, eval_seed)
+        eval_returns.append((step, float(returns.mean())))
+        writer.add_scalar("eval/episodic_return", returns.mean(), step)
+        pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
+        tqdm.write(f"step {step}: return {returns.mean():.1f} +- {returns.std():.1f}, {sps:.0f} steps/s")
+
+    obs = None  # None: an episode starts at this step
+    for global_step in range(start_step, args.total_timesteps):
+        if global_step % args.eval_frequency == 0:
+            run_evaluation(global_step)
+            sps_time = time.time()
+        if obs is None:
+            raw_obs, _ = env.reset(seed=args.seed if global_step == 0 else None)
+            obs = torch.as_tensor(normalizer.observation(raw_obs), device=device)
+        step_in_rollout = global_step % args.num_steps
+        iteration = global_step // args.num_steps + 1
+        if step_in_rollout == 0 and args.anneal_lr:  # Annealing the rate if instructed to do so.
+            optimizer.param_groups[0]["lr"] = (1.0 - (iteration - 1.0) / num_iterations) * args.learning_rate
+
+        # ALGO LOGIC: action logic
+        with torch.no_grad():
+            action, logprob, _, value, int_value = agent.get_action_and_value(obs)
+
+        # execute the game and log data
+        clipped_action = action.cpu().numpy().clip(env.action_space.low, env.action_space.high)
+        next_raw_obs, reward, terminated, truncated, info = env.step(clipped_action)
+        next_obs = torch.as_tensor(normalizer.observation(next_raw_obs), device=device)
+        reward = normalizer.reward(reward, terminated)
+        if truncated and not terminated:  # a time-limit cut: the value of the last observation stands in for the rest
+            with torch.no_grad():
+                reward += args.gamma * agent.get_value(next_obs)[0].item()
+        rollout.add(step_in_rollout, obs=obs, actions=action, logprobs=logprob, values=value, int_values=int_value)
+        rollout.add(step_in_rollout, rewards=reward, episode_ends=float(terminated or truncated))
+        rollout.add(step_in_rollout, raw_next_obs=torch.as_tensor(next_raw_obs, device=device))
+        obs = next_obs
+        if terminated or truncated:
+            writer.add_scalar("charts/episodic_return", info["episode"]["r"], global_step)
+            writer.add_scalar("charts/episodic_length", info["episode"]["l"], global_step)
+            obs = None
+
+        # ALGO LOGIC: training, once a rollout is full
+        if step_in_rollout == args.num_steps - 1 and iteration <= num_iterations:
+            with torch.no_grad():
+                # the predictor's error on this rollout's next observations, with the statistics before it
+                bonus = rnd_model.bonus(intrinsic_normalizer.observation(rollout.raw_next_obs))
+                int_rewards = intrinsic_normalizer.intrinsic(bonus)
+                # after an episode end the extrinsic next value is not used; the intrinsic stream continues from it
+                next_values = agent.get_value(next_obs)
+                advantages, returns, int_returns = advantages_and_returns(rollout, int_rewards, next_values, args)
+            intrinsic_normalizer.obs_rms.update_batch(rollout.raw_next_obs.double().cpu().numpy())
+            # the predictor learns on the updated statistics, as CleanRL
+            rnd_obs = intrinsic_normalizer.observation(rollout.raw_next_obs)
+            try:
+                stats = update_policy(rollout, advantages, returns, int_returns, rnd_obs, agent, rnd_model, optimizer, args)
+            except NonFiniteError as quantity:
+                stop_non_finite(quantity, global_step, run_dir, lambda: state(global_step))
+            var_y = returns.var()
+            explained_var = (1 - (returns - rollout.values).var() / var_y).item() if var_y > 0 else float("nan")
+            writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
+            for name, value_t in stats.items():
+                writer.add_scalar(f"losses/{name}", value_t.item(), global_step)
+            writer.add_scalar("losses/explained_variance", explained_var, global_step)
+            writer.add_scalar("charts/intrinsic_reward", int_rewards.mean().item(), global_step)
+
+        if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded
+            sps = (global_step + 1 - sps_step) / (time.time() - sps_time)
+            writer.add_scalar("charts/SPS", sps, global_step)
+            sps_time, sps_step = time.time(), global_step + 1
+        pbar.update(1)
+        if args.checkpoint_frequency and obs is None and global_step + 1 >= next_checkpoint:
+            write_checkpoint(os.path.join(run_dir, CHECKPOINT), state(global_step + 1))
+            next_checkpoint = global_step + 1 + args.checkpoint_frequency
+
+    run_evaluation(args.total_timesteps)
+    if args.checkpoint_frequency:
+        write_checkpoint(os.path.join(run_dir, CHECKPOINT), state(args.total_timesteps))
+    pbar.close()
+    if args.save_model:
+        model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
+        saved = {"actor": agent.state_dict(), "normalizer": normalizer.state_dict()}
+        saved["rnd"] = rnd_model.state_dict()
+        torch.save(saved, model_path)
+        tqdm.write(f"model saved to {model_path}")
+    env.close()
+    eval_env.close()
+    writer.close()
+    return {**nets, **optimizers, **parts, "run_dir": run_dir, "eval_returns": eval_returns}
+
+
+# --------------------------------------------------------------------------------------------------
+# Machinery. Nothing below changes what the algorithm computes: the command line and its checks, the
+# environment layer, logging, the NaN guard and the checkpoints behind exact resume.
+
+
+def fail(message: str):
+    """Stop with one line on stderr and exit status 1, no traceback."""
+    raise SystemExit("error: " + " ".join(message.split()))
+
+
+def parse_args(argv=None) -> Args:
+    """The command line as checked Args. With --resume the run's own flags are the defaults, and a flag
+    given now may differ from the run's only if it does not change what is learned."""
+    args = tyro.cli(Args, args=argv)
+    if args.resume:
+        run_args = load_checkpoint(args.resume)["args"]
+        args = tyro.cli(Args, args=argv, default=Args(**run_args))
+        differing = [k for k, v in run_args.items() if k not in RESUMABLE_FLAGS and getattr(args, k) != v]
+        if differing:
+            flags = ", ".join(f"--{k.replace('_', '-')} {getattr(args, k)} (run: {run_args[k]})" for k in differing)
+            fail(f"--resume {args.resume}: {flags}; a resumed run keeps its hyperparameters")
+    check_args(args)
+    return args
+
+
+def check_args(args: Args):
+    checks = [
+        (args.total_timesteps > 0, f"--total-timesteps must be > 0, got {args.total_timesteps}"),
+        (args.num_steps > 0, f"--num-steps must be > 0, got {args.num_steps}"),
+        (
+            args.total_timesteps >= args.num_steps,
+            f"--total-timesteps ({args.total_timesteps}) must be >= --num-steps ({args.num_steps}), one rollout",
+        ),
+        (
+            1 <= args.num_minibatches <= args.num_steps,
+            f"--num-minibatches must be in [1, --num-steps ({args.num_steps})], got {args.num_minibatches}",
+        ),
+        (args.update_epochs > 0, f"--update-epochs must be > 0, got {args.update_epochs}"),
+        (args.learning_rate > 0, f"--learning-rate must be > 0, got {args.learning_rate}"),
+        (0 <= args.gamma <= 1, f"--gamma must be in [0, 1], got {args.gamma}"),
+        (0 <= args.gae_lambda <= 1, f"--gae-lambda must be in [0, 1], got {args.gae_lambda}"),
+        (args.clip_coef > 0, f"--clip-coef must be > 0, got {args.clip_coef}"),
+        (args.ent_coef >= 0, f"--ent-coef must be >= 0, got {args.ent_coef}"),
+        (args.vf_coef >= 0, f"--vf-coef must be >= 0, got {args.vf_coef}"),
+        (args.max_grad_norm > 0, f"--max-grad-norm must be > 0, got {args.max_grad_norm}"),
+        (args.target_kl is None or args.target_kl > 0, f"--target-kl must be > 0, got {args.target_kl}"),
+        (args.eval_frequency > 0, f"--eval-frequency must be > 0, got {args.eval_frequency}"),
+        (args.eval_episodes > 0, f"--eval-episodes must be > 0, got {args.eval_episodes}"),
+        (args.checkpoint_frequency >= 0, f"--checkpoint-frequency must be >= 0, got {args.checkpoint_frequency}"),
+        (0 < args.update_proportion <= 1, f"--update-proportion must be in (0, 1], got {args.update_proportion}"),
+        (args.int_coef >= 0, f"--int-coef must be >= 0, got {args.int_coef}"),
+        (args.ext_coef >= 0, f"--ext-coef must be >= 0, got {args.ext_coef}"),
+        (0 <= args.int_gamma <= 1, f"--int-gamma must be in [0, 1], got {args.int_gamma}"),
+        (args.num_iterations_obs_norm_init >= 0, f"--num-iterations-obs-norm-init must be >= 0"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            fail(message)
+
+
+def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
+    return gym.spaces.Box(space.low.astype(np.float32), space.high.astype(np.float32), dtype=np.float32)
+
+
+def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_every: int = 1):
+    """One environment with a flat float32 observation and a float32 Box action space.
+
+    A plain (not vectorised) env: the loop sees the true final observation of every episode and
+    resets itself, so no autoreset step can end up in the replay buffer."""
+    if env_id.startswith("dm_control/"):
+        import shimmy  # registers the DeepMind Control tasks as dm_control/<domain>-<task>-v0
+
+        gym.register_envs(shimmy)
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
+        hint = f"did you mean {', '.join(close)}?" if close else "use e.g. Hopper-v4 or dm_control/cartpole-swingup-v0"
+        fail(f"unknown --env-id {env_id!r}; {hint}")
+    try:
+        env = gym.make(env_id, render_mode="rgb_array" if video_folder else None)
+    except Exception as e:  # a registered id whose dependencies are missing, e.g. Hopper-v3 (mujoco-py)
+        fail(f"could not create --env-id {env_id!r}: {type(e).__name__}: {e}")
+    if not isinstance(env.action_space, gym.spaces.Box):
+        space = type(env.action_space).__name__
+        fail(f"--env-id {env_id!r} has a {space} action space; only continuous (Box) actions are supported")
+    if not (np.isfinite(env.action_space.low).all() and np.isfinite(env.action_space.high).all()):
+        fail(f"--env-id {env_id!r} has unbounded actions; the policies here act within finite bounds")
+    if isinstance(env.observation_space, gym.spaces.Dict):  # DeepMind Control observations are dicts of arrays
+        env = gym.wrappers.FlattenObservation(env)
+    env = gym.wrappers.TransformObservation(env, lambda obs: obs.astype(np.float32), float32_box(env.observation_space))
+    if env.action_space.dtype != np.float32:  # DeepMind Control declares float64 actions
+        to_env_dtype = lambda action, dtype=env.action_space.dtype: np.asarray(action, dtype=dtype)  # noqa: E731
+        env = gym.wrappers.TransformAction(env, to_env_dtype, float32_box(env.action_space))
+    env = gym.wrappers.RecordEpisodeStatistics(env)
+    if video_folder:
+        env = gym.wrappers.RecordVideo(env, video_folder, episode_trigger=lambda episode: episode % video_every == 0)
+    env.action_space.seed(seed)
+    return env
+
+
+def start_logging(args: Args, run_name: str, run_dir: str, start_step: int, device: torch.device):
+    """TensorBoard (a resumed run hides what the killed process logged after its checkpoint), Weights and
+    Biases with --track, and a progress bar on a terminal (in a log file the per-evaluation lines say the same)."""
+    if args.track:
+        try:
+            import wandb
+        except ImportError:
+            fail("--track needs Weights and Biases: pip install wandb")
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=run_name,
+            monitor_gym=True,
+            save_code=True,
+        )
+    writer = SummaryWriter(run_dir, purge_step=start_step if args.resume else None)
+    if not args.resume:
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+        )
+    pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
+    resumed = f", resumed at step {start_step}" if args.resume else ""
+    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}{resumed}")
+    return writer, pbar
+
+
+class NonFiniteError(Exception):
+    """A loss became NaN or infinite; raised before the optimizer step it would have poisoned."""
+
+
+def check_finite(value: torch.Tensor, name: str):
+    if not torch.isfinite(value):
+        raise NonFiniteError(name)
+
+
+def stop_non_finite(quantity: NonFiniteError, step: int, run_dir: str, last_good_state):
+    """Ends the run on a non-finite loss. The update stops before the optimizer step that the loss would have
+    poisoned, so the state is still finite and is saved."""
+    path = os.path.join(run_dir, "last_good_state.pt")
+    write_checkpoint(path, last_good_state())
+    rates = [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(Args) if f.name.endswith(("lr", "learning_rate"))]
+    fail(
+        f"{quantity} became non-finite at step {step} (try a smaller {' or '.join(rates)}); the last finite state is in {path}"
+    )
+
+
 # Checkpoints: everything needed to continue a run exactly. They are taken at episode boundaries,
 # where an environment holds no state but its random generators, so any env can be resumed.
 CHECKPOINT = "checkpoint.pt"
 # flags that may differ between a run and its resumption: they don't change what is learned
-RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda"}
+RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity"}
+RESUMABLE_FLAGS |= {"capture_video", "save_model", "cuda"}
+
+
+def snapshot(args: Args, env: gym.Env, global_step: int, nets: dict, optimizers: dict, **parts) -> dict:
+    """A run's state at `global_step`: its flags, networks, optimizers and random generators, and `parts`
+    (objects with a state_dict(), such as the replay buffer, or plain values such as the evaluations)."""
+    return {
+        "script": os.path.basename(__file__),
+        "args": vars(args),
+        "global_step": global_step,
+        "nets": {name: net.state_dict() for name, net in nets.items()},
+        "optimizers": {name: opt.state_dict() for name, opt in optimizers.items()},
+        **{name: part.state_dict() if hasattr(part, "state_dict") else part for name, part in parts.items()},
+        "rng": {
+            "python": random.getstate(),
+            "numpy": rng_state(np.random.mtrand._rand),
+            "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else [],
+            "action_space": rng_state(env.action_space.np_random),
+            "env": rng_state(env.unwrapped.np_random),
+        },
+    }
+
+
+def restore(checkpoint: dict, env: gym.Env, nets: dict, optimizers: dict, **parts):
+    """Loads a snapshot() into the objects it was taken of (its plain values are the caller's to read)."""
+    for name, net in nets.items():
+        net.load_state_dict(checkpoint["nets"][name])
+    for name, opt in optimizers.items():
+        state = checkpoint["optimizers"][name]
+        for group, current in zip(state["param_groups"], opt.param_groups):  # --cudagraphs may differ from the run's
+            group["capturable"] = current["capturable"]
+        opt.load_state_dict(state)
+    for name, part in parts.items():
+        part.load_state_dict(checkpoint[name])
+    rng = checkpoint["rng"]
+    random.setstate(rng["python"])
+    set_rng_state(np.random.mtrand._rand, rng["numpy"])
+    torch.set_rng_state(rng["torch"])
+    if rng["cuda"]:
+        torch.cuda.set_rng_state_all(rng["cuda"])
+    set_rng_state(env.action_space.np_random, rng["action_space"])
+    set_rng_state(env.unwrapped.np_random, rng["env"])
 
 
 def rng_state(rng) -> dict:
@@ -519,224 +796,6 @@ def load_checkpoint(run_dir: str) -> dict:
         found = checkpoint.get("script") if isinstance(checkpoint, dict) else None
         fail(f"{path} was not written by {script} (written by {found or 'something else'})")
     return checkpoint
-
-
-def parse_args(argv=None) -> Args:
-    args = tyro.cli(Args, args=argv)
-    if args.resume:  # the run's own flags become the defaults, so only flags given now can differ
-        args = tyro.cli(Args, args=argv, default=Args(**load_checkpoint(args.resume)["args"]))
-    return args
-
-
-def main(args: Args):
-    check_args(args)
-    checkpoint = load_checkpoint(args.resume) if args.resume else None
-    if checkpoint:
-        differing = [k for k, v in checkpoint["args"].items() if k not in RESUMABLE_FLAGS and getattr(args, k) != v]
-        if differing:
-            flags = ", ".join(f"--{k.replace('_', '-')} {getattr(args, k)} (run: {checkpoint['args'][k]})" for k in differing)
-            fail(f"--resume {args.resume}: {flags}; a resumed run keeps its hyperparameters")
-        run_dir = os.path.normpath(args.resume)
-        run_name = os.path.basename(run_dir)
-        if checkpoint["global_step"] >= args.total_timesteps:
-            print(f"{run_dir} had already finished its {args.total_timesteps} steps")
-            return {"run_dir": run_dir, "eval_returns": checkpoint["eval_returns"]}
-    else:
-        run_name = args.run_name or f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
-        run_dir = os.path.join("runs", run_name)
-
-    # TRY NOT TO MODIFY: seeding
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
-        os.environ.setdefault("MUJOCO_GL", "disable")
-
-    # env setup: the evaluation env is seeded apart from the training env
-    env = make_env(args.env_id, args.seed)
-    eval_seed = args.seed + 100
-    video_folder = f"videos/{run_name}" if args.capture_video else None
-    eval_env = make_env(args.env_id, eval_seed, video_folder, video_every=args.eval_episodes)
-    obs_dim = int(np.prod(env.observation_space.shape))
-    action_dim = int(np.prod(env.action_space.shape))
-
-    agent = Agent(obs_dim, action_dim).to(device)
-    rnd_model = RNDModel(obs_dim).to(device)
-    optimizer = optim.Adam([*agent.parameters(), *rnd_model.predictor.parameters()], lr=args.learning_rate, eps=1e-5)
-    normalizer = Normalizer(obs_dim, args.gamma)
-    intrinsic_normalizer = IntrinsicNormalizer(obs_dim, args.int_gamma)
-    rollout = Rollout(args.num_steps, obs_dim, action_dim, device)
-    num_iterations = args.total_timesteps // args.num_steps  # a last partial rollout is collected but not learned from
-
-    eval_returns = []  # (step, mean return) of every evaluation
-
-    def snapshot(next_step: int) -> dict:
-        return {
-            "script": os.path.basename(__file__),
-            "args": vars(args),
-            "global_step": next_step,
-            "eval_returns": eval_returns,
-            "nets": {"agent": agent.state_dict(), "rnd": rnd_model.state_dict()},
-            "optimizers": {"optimizer": optimizer.state_dict()},
-            "rollout": {name: t.cpu().clone() for name, t in rollout.fields().items()},
-            "normalizer": normalizer.state_dict(),
-            "intrinsic_normalizer": intrinsic_normalizer.state_dict(),
-            "rng": {
-                "python": random.getstate(),
-                "numpy": rng_state(np.random.mtrand._rand),
-                "torch": torch.get_rng_state(),
-                "cuda": torch.cuda.get_rng_state_all() if device.type == "cuda" else [],
-                "action_space": rng_state(env.action_space.np_random),
-                "env": rng_state(env.unwrapped.np_random),
-            },
-        }
-
-    start_step = 0
-    if checkpoint:
-        start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
-        agent.load_state_dict(checkpoint["nets"]["agent"])
-        rnd_model.load_state_dict(checkpoint["nets"]["rnd"])
-        optimizer.load_state_dict(checkpoint["optimizers"]["optimizer"])
-        for name, t in rollout.fields().items():
-            t.copy_(checkpoint["rollout"][name])
-        normalizer.load_state_dict(checkpoint["normalizer"])
-        intrinsic_normalizer.load_state_dict(checkpoint["intrinsic_normalizer"])
-        rng = checkpoint["rng"]
-        random.setstate(rng["python"])
-        set_rng_state(np.random.mtrand._rand, rng["numpy"])
-        torch.set_rng_state(rng["torch"])
-        if rng["cuda"]:
-            torch.cuda.set_rng_state_all(rng["cuda"])
-        set_rng_state(env.action_space.np_random, rng["action_space"])
-        set_rng_state(env.unwrapped.np_random, rng["env"])
-
-    if args.track:
-        try:
-            import wandb
-        except ImportError:
-            fail("--track needs Weights and Biases: pip install wandb")
-        wandb.init(
-            project=args.wandb_project_name,
-            entity=args.wandb_entity,
-            sync_tensorboard=True,
-            config=vars(args),
-            name=run_name,
-            monitor_gym=True,
-            save_code=True,
-        )
-    # a resumed run hides what the killed process logged after its checkpoint
-    writer = SummaryWriter(run_dir, purge_step=start_step if checkpoint else None)
-    if not checkpoint:
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
-        )
-
-    def run_evaluation(step: int):
-        returns = evaluate(agent, normalizer, eval_env, args.eval_episodes, eval_seed)
-        eval_returns.append((step, float(returns.mean())))
-        writer.add_scalar("eval/episodic_return", returns.mean(), step)
-        pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
-        tqdm.write(f"step {step}/{args.total_timesteps}: eval return {returns.mean():.1f} +- {returns.std():.1f}, {sps:.0f} steps/s")
-
-    if not checkpoint:  # CleanRL's warm-up: the observation statistics start from random actions' observations
-        env.reset(seed=args.seed)
-        warmup_obs = []
-        for _ in range(args.num_iterations_obs_norm_init * args.num_steps):
-            raw_obs, _, terminated, truncated, _ = env.step(env.action_space.sample())
-            warmup_obs.append(raw_obs)
-            if terminated or truncated:
-                env.reset()
-        if warmup_obs:
-            intrinsic_normalizer.obs_rms.update_batch(np.array(warmup_obs, dtype=np.float64))
-
-    # the bar goes to a terminal; in a log file the per-evaluation lines say the same
-    pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
-    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}" + (f", resumed at step {start_step}" if checkpoint else ""))
-    sps_time, sps_step, sps = time.time(), start_step, 0.0
-    next_checkpoint = start_step + args.checkpoint_frequency
-
-    # TRY NOT TO MODIFY: start the game
-    obs = None  # None: an episode starts at this step
-    for global_step in range(start_step, args.total_timesteps):
-        if global_step % args.eval_frequency == 0:
-            run_evaluation(global_step)
-            sps_time = time.time()
-        if obs is None:
-            raw_obs, _ = env.reset(seed=args.seed if global_step == 0 else None)
-            obs = torch.as_tensor(normalizer.observation(raw_obs), device=device)
-        step_in_rollout = global_step % args.num_steps
-        iteration = global_step // args.num_steps + 1
-        if step_in_rollout == 0 and args.anneal_lr:  # Annealing the rate if instructed to do so.
-            optimizer.param_groups[0]["lr"] = (1.0 - (iteration - 1.0) / num_iterations) * args.learning_rate
-
-        # ALGO LOGIC: action logic
-        with torch.no_grad():
-            action, logprob, _, value, int_value = agent.get_action_and_value(obs)
-
-        # TRY NOT TO MODIFY: execute the game and log data.
-        next_raw_obs, reward, terminated, truncated, info = env.step(action.cpu().numpy().clip(env.action_space.low, env.action_space.high))
-        next_obs = torch.as_tensor(normalizer.observation(next_raw_obs), device=device)
-        reward = normalizer.reward(reward, terminated)
-        if truncated and not terminated:  # a time-limit cut: the value of the last observation stands in for the rest
-            with torch.no_grad():
-                reward += args.gamma * agent.get_value(next_obs)[0].item()
-        raw_next_obs = torch.as_tensor(next_raw_obs, device=device)
-        for name, value_t in [("obs", obs), ("actions", action), ("logprobs", logprob), ("rewards", reward), ("episode_ends", float(terminated or truncated)), ("values", value), ("int_values", int_value), ("raw_next_obs", raw_next_obs)]:
-            rollout.fields()[name][step_in_rollout] = value_t
-        obs = next_obs
-        if terminated or truncated:
-            writer.add_scalar("charts/episodic_return", info["episode"]["r"], global_step)
-            writer.add_scalar("charts/episodic_length", info["episode"]["l"], global_step)
-            obs = None
-
-        # ALGO LOGIC: training, once a rollout is full
-        if step_in_rollout == args.num_steps - 1 and iteration <= num_iterations:
-            with torch.no_grad():
-                # the predictor's error on this rollout's next observations, with the statistics before it
-                int_rewards = intrinsic_normalizer.intrinsic(rnd_model.bonus(intrinsic_normalizer.observation(rollout.raw_next_obs)))
-                # after an episode end the extrinsic next value is not used; the intrinsic stream continues from it
-                advantages, returns, int_returns = advantages_and_returns(rollout, int_rewards, agent.get_value(next_obs), args)
-            intrinsic_normalizer.obs_rms.update_batch(rollout.raw_next_obs.double().cpu().numpy())
-            rnd_obs = intrinsic_normalizer.observation(rollout.raw_next_obs)  # the predictor learns on the updated statistics, as CleanRL
-            try:
-                stats = update_policy(rollout, advantages, returns, int_returns, rnd_obs, agent, rnd_model, optimizer, args)
-            except NonFiniteError as quantity:
-                path = os.path.join(run_dir, "last_good_state.pt")
-                write_checkpoint(path, snapshot(global_step))
-                fail(f"{quantity} became non-finite at step {global_step} (try a smaller --learning-rate); the last finite state is in {path}")
-            var_y = returns.var()
-            explained_var = (1 - (returns - rollout.values).var() / var_y).item() if var_y > 0 else float("nan")
-            writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
-            for name, value_t in stats.items():
-                writer.add_scalar(f"losses/{name}", value_t.item(), global_step)
-            writer.add_scalar("losses/explained_variance", explained_var, global_step)
-            writer.add_scalar("charts/intrinsic_reward", int_rewards.mean().item(), global_step)
-
-        if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded
-            sps = (global_step + 1 - sps_step) / (time.time() - sps_time)
-            writer.add_scalar("charts/SPS", sps, global_step)
-            sps_time, sps_step = time.time(), global_step + 1
-        pbar.update(1)
-        if args.checkpoint_frequency and obs is None and global_step + 1 >= next_checkpoint:
-            write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(global_step + 1))
-            next_checkpoint = global_step + 1 + args.checkpoint_frequency
-
-    run_evaluation(args.total_timesteps)
-    if args.checkpoint_frequency:
-        write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(args.total_timesteps))
-    pbar.close()
-    if args.save_model:
-        model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
-        torch.save({"actor": agent.state_dict(), "normalizer": normalizer.state_dict(), "rnd": rnd_model.state_dict()}, model_path)
-        tqdm.write(f"model saved to {model_path}")
-    env.close()
-    eval_env.close()
-    writer.close()
-    return {"actor": agent, "agent": agent, "normalizer": normalizer, "rnd_model": rnd_model, "intrinsic_normalizer": intrinsic_normalizer, "run_dir": run_dir, "eval_returns": eval_returns, "optimizer": optimizer}
 
 
 if __name__ == "__main__":

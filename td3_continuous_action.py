@@ -2,7 +2,10 @@
 # Differences from CleanRL's td3_continuous_action.py: the twin critics are one batched ensemble,
 # the reported metric is a deterministic evaluation of the actor every --eval-frequency steps,
 # DeepMind Control tasks run through shimmy, and every piece is importable for tests.
+import dataclasses
 import difflib
+import functools
+import math
 import os
 import random
 import sys
@@ -28,7 +31,7 @@ class Args:
     seed: int = 1
     """seed of the experiment"""
     torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=False`"""
+    """whether to set `torch.backends.cudnn.deterministic` (`--no-torch-deterministic` leaves it off)"""
     cuda: bool = True
     """if toggled, cuda will be enabled by default (falls back to the CPU when no GPU is found)"""
     track: bool = False
@@ -85,74 +88,6 @@ class Args:
     """record each kind of training update once as a CUDA graph and replay it (needs a CUDA GPU); losses are checked for NaN every 100 steps"""
 
 
-def fail(message: str):
-    """Stop with one line on stderr and exit status 1, no traceback."""
-    raise SystemExit("error: " + " ".join(message.split()))
-
-
-def check_args(args: Args):
-    checks = [
-        (args.total_timesteps > 0, f"--total-timesteps must be > 0, got {args.total_timesteps}"),
-        (args.buffer_size > 0, f"--buffer-size must be > 0, got {args.buffer_size}"),
-        (args.batch_size > 0, f"--batch-size must be > 0, got {args.batch_size}"),
-        (
-            args.learning_starts >= args.batch_size,
-            f"--learning-starts ({args.learning_starts}) must be >= --batch-size ({args.batch_size})",
-        ),
-        (args.learning_rate > 0, f"--learning-rate must be > 0, got {args.learning_rate}"),
-        (0 <= args.gamma <= 1, f"--gamma must be in [0, 1], got {args.gamma}"),
-        (0 < args.tau <= 1, f"--tau must be in (0, 1], got {args.tau}"),
-        (args.policy_noise >= 0, f"--policy-noise must be >= 0, got {args.policy_noise}"),
-        (args.noise_clip >= 0, f"--noise-clip must be >= 0, got {args.noise_clip}"),
-        (args.exploration_noise >= 0, f"--exploration-noise must be >= 0, got {args.exploration_noise}"),
-        (args.policy_frequency > 0, f"--policy-frequency must be > 0, got {args.policy_frequency}"),
-        (args.eval_frequency > 0, f"--eval-frequency must be > 0, got {args.eval_frequency}"),
-        (args.eval_episodes > 0, f"--eval-episodes must be > 0, got {args.eval_episodes}"),
-        (args.checkpoint_frequency >= 0, f"--checkpoint-frequency must be >= 0, got {args.checkpoint_frequency}"),
-    ]
-    for ok, message in checks:
-        if not ok:
-            fail(message)
-
-
-def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
-    return gym.spaces.Box(space.low.astype(np.float32), space.high.astype(np.float32), dtype=np.float32)
-
-
-def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_every: int = 1):
-    """One environment with a flat float32 observation and a float32 Box action space.
-
-    A plain (not vectorised) env: the loop sees the true final observation of every episode and
-    resets itself, so no autoreset step can end up in the replay buffer."""
-    if env_id.startswith("dm_control/"):
-        import shimmy  # registers the DeepMind Control tasks as dm_control/<domain>-<task>-v0
-
-        gym.register_envs(shimmy)
-    if env_id not in gym.registry:
-        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
-        hint = f"did you mean {', '.join(close)}?" if close else "use e.g. Hopper-v4 or dm_control/cartpole-swingup-v0"
-        fail(f"unknown --env-id {env_id!r}; {hint}")
-    try:
-        env = gym.make(env_id, render_mode="rgb_array" if video_folder else None)
-    except Exception as e:  # a registered id whose dependencies are missing, e.g. Hopper-v3 (mujoco-py)
-        fail(f"could not create --env-id {env_id!r}: {type(e).__name__}: {e}")
-    if not isinstance(env.action_space, gym.spaces.Box):
-        fail(f"--env-id {env_id!r} has a {type(env.action_space).__name__} action space; only continuous (Box) actions are supported")
-    if not (np.isfinite(env.action_space.low).all() and np.isfinite(env.action_space.high).all()):
-        fail(f"--env-id {env_id!r} has unbounded actions; the policies here act within finite bounds")
-    if isinstance(env.observation_space, gym.spaces.Dict):  # DeepMind Control observations are dicts of arrays
-        env = gym.wrappers.FlattenObservation(env)
-    env = gym.wrappers.TransformObservation(env, lambda obs: obs.astype(np.float32), float32_box(env.observation_space))
-    if env.action_space.dtype != np.float32:  # DeepMind Control declares float64 actions
-        to_env_dtype = lambda action, dtype=env.action_space.dtype: np.asarray(action, dtype=dtype)  # noqa: E731
-        env = gym.wrappers.TransformAction(env, to_env_dtype, float32_box(env.action_space))
-    env = gym.wrappers.RecordEpisodeStatistics(env)
-    if video_folder:
-        env = gym.wrappers.RecordVideo(env, video_folder, episode_trigger=lambda episode: episode % video_every == 0)
-    env.action_space.seed(seed)
-    return env
-
-
 # ALGO LOGIC: initialize agent here:
 class QEnsemble(nn.Module):
     """`num_q` critics concat(obs, action) -> 256 -> 256 -> 1, each layer's weights stacked into one
@@ -164,15 +99,16 @@ class QEnsemble(nn.Module):
         def uniform(fan_in, *shape):  # the default init of nn.Linear, drawn independently per member
             return nn.Parameter(torch.empty(num_q, *shape).uniform_(-(fan_in**-0.5), fan_in**-0.5))
 
-        self.w1, self.b1 = uniform(obs_dim + action_dim, obs_dim + action_dim, hidden), uniform(obs_dim + action_dim, 1, hidden)
+        in_dim = obs_dim + action_dim
+        self.w1, self.b1 = uniform(in_dim, in_dim, hidden), uniform(in_dim, 1, hidden)
         self.w2, self.b2 = uniform(hidden, hidden, hidden), uniform(hidden, 1, hidden)
         self.w3, self.b3 = uniform(hidden, 1, hidden), uniform(hidden, 1)  # the output layer, as rows
 
     def forward(self, obs, actions, members=None, detach_params=False):
-        """Q-values [num_q, batch]. `members` (an index) selects a subset; `detach_params` lets gradients reach
-        the actions only, which is all an actor loss needs."""
+        """Q-values [num_q, batch]. `detach_params` lets gradients reach the actions only, which is all an actor
+        loss needs."""
         params = list(self.parameters())
-        if members is not None:  # not always: even a full slice would copy each weight's gradient in backward
+        if members is not None:  # a subset of the critics (only then: a full slice would copy each weight's gradient)
             params = [p[members] for p in params]
         w1, b1, w2, b2, w3, b3 = [p.detach() for p in params] if detach_params else params
         x = torch.cat([obs, actions], -1)
@@ -216,7 +152,6 @@ class ReplayBuffer:
         self.capacity, self.pos, self.size = capacity, 0, 0
         self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
         self.storage = torch.zeros((capacity, sum(self.widths)), dtype=torch.float32, device=device)
-        self.indices = torch.zeros(0, dtype=torch.int64, device=device)  # the rows of the next batch
 
     def add(self, obs, action, next_obs, reward, termination):
         row = np.concatenate([obs, action, next_obs, [reward, termination]], dtype=np.float32)
@@ -224,45 +159,36 @@ class ReplayBuffer:
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
-    def draw(self, batch_size: int):
-        """Draw the rows of the next batch into `self.indices`, in place: a CUDA graph that gathers
-        them reads the same tensor at every replay, while the buffer's size changes every step."""
-        torch.randint(self.size, (batch_size,), device=self.storage.device, out=self.indices)
+    def sample(self, *shape: int) -> Batch:
+        """Transitions drawn uniformly with replacement, as a batch of this shape: `sample(256)` is one
+        batch of 256, `sample(20, 256)` twenty of them stacked (each field [20, 256, width])."""
+        indices = torch.randint(self.size, shape, device=self.storage.device)
+        obs, actions, next_obs, rewards, terminations = self.storage[indices].split(self.widths, dim=-1)
+        return Batch(obs, actions, next_obs, rewards.squeeze(-1), terminations.squeeze(-1))
 
-    def batch(self) -> Batch:
-        """The transitions at the drawn rows."""
-        obs, actions, next_obs, rewards, terminations = self.storage[self.indices].split(self.widths, dim=1)
-        return Batch(obs, actions, next_obs, rewards.squeeze(1), terminations.squeeze(1))
+    def state_dict(self) -> dict:
+        return {"rows": self.storage[: self.size].cpu().clone(), "pos": self.pos}
+
+    def load_state_dict(self, state: dict):
+        self.storage[: len(state["rows"])] = state["rows"].to(self.storage.device)
+        self.size, self.pos = len(state["rows"]), state["pos"]
+
+
+@torch.no_grad()
+def noisy_action(obs, actor: Actor, exploration_noise: float) -> torch.Tensor:
+    """The actor's action plus Gaussian noise of std exploration_noise * action_scale, clipped to the bounds."""
+    action = actor(torch.as_tensor(obs, device=actor.action_scale.device))
+    return (action + torch.normal(0, actor.action_scale * exploration_noise)).clamp(actor.action_low, actor.action_high)
 
 
 def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Args):
     """y = r + gamma * (1 - terminated) * min_i Q'_i(s', clip(pi'(s') + clipped noise)) (TD3 Eq. 15)."""
     with torch.no_grad():
-        clipped_noise = (torch.randn_like(batch.actions) * args.policy_noise).clamp(
-            -args.noise_clip, args.noise_clip
-        ) * target_actor.action_scale
-        next_actions = (target_actor(batch.next_observations) + clipped_noise).clamp(
-            target_actor.action_low, target_actor.action_high
-        )
+        clipped_noise = (torch.randn_like(batch.actions) * args.policy_noise).clamp(-args.noise_clip, args.noise_clip)
+        next_actions = target_actor(batch.next_observations) + clipped_noise * target_actor.action_scale
+        next_actions = next_actions.clamp(target_actor.action_low, target_actor.action_high)
         min_qf_next_target = qf_target(batch.next_observations, next_actions).min(0).values
         return batch.rewards + (1 - batch.terminations) * args.gamma * min_qf_next_target
-
-
-def bf16_autocast(device: torch.device, enabled: bool):
-    """--bf16: the matmuls of one training step in bfloat16. Autocast's cache of cast weights is off:
-    an optimizer updates weights in place within the step, and a cached cast would keep the old values."""
-    return torch.autocast(device.type, torch.bfloat16, enabled=enabled, cache_enabled=False)
-
-
-class NonFiniteError(Exception):
-    """A loss became NaN or infinite; raised before the optimizer step it would have poisoned."""
-
-
-def check_finite(value: torch.Tensor, name: str):
-    if value.is_cuda and torch.cuda.is_current_stream_capturing():  # a graph cannot stop on a value: --cudagraphs checks when it logs
-        return
-    if not torch.isfinite(value):
-        raise NonFiniteError(name)
 
 
 def update_critic(batch: Batch, qf: QEnsemble, q_optimizer, target_actor: Actor, qf_target: QEnsemble, args: Args):
@@ -284,35 +210,6 @@ def update_actor(batch: Batch, actor: Actor, actor_optimizer, qf: QEnsemble):
     actor_loss.backward()
     actor_optimizer.step()
     return actor_loss.detach()
-
-
-class CudaGraph:
-    """--cudagraphs: `CudaGraph(fn)(*key)` runs `fn(*key)` as a CUDA graph, one per key. The first
-    `warmup` calls of a key run eagerly on a side stream (they allocate the gradients and optimizer
-    states the graph will reuse), the next one records the graph and every call replays it: one
-    launch instead of hundreds of small kernels, with no host synchronisation. A graph reads its
-    inputs from the tensors it saw when recorded (the replay buffer's storage and drawn indices),
-    so they must change in place; what it returns is overwritten by its next replay."""
-
-    def __init__(self, fn, warmup: int = 3):
-        self.fn, self.warmup = fn, warmup
-        self.calls, self.graphs, self.outputs = {}, {}, {}
-
-    def __call__(self, *key):
-        if key not in self.graphs:
-            self.calls[key] = self.calls.get(key, 0) + 1
-            if self.calls[key] <= self.warmup:
-                stream = torch.cuda.Stream()
-                stream.wait_stream(torch.cuda.current_stream())
-                with torch.cuda.stream(stream):
-                    outputs = self.fn(*key)
-                torch.cuda.current_stream().wait_stream(stream)
-                return outputs
-            self.graphs[key] = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(self.graphs[key]):  # records the kernels without running them
-                self.outputs[key] = self.fn(*key)
-        self.graphs[key].replay()
-        return self.outputs[key]
 
 
 @torch.no_grad()
@@ -342,11 +239,401 @@ def evaluate(actor: Actor, env: gym.Env, num_episodes: int, seed: int) -> np.nda
     return returns
 
 
+def main(args: Args):
+    checkpoint = load_checkpoint(args.resume) if args.resume else None
+    default_name = f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_dir = os.path.normpath(args.resume) if args.resume else os.path.join("runs", args.run_name or default_name)
+    run_name = os.path.basename(run_dir)
+    if checkpoint and checkpoint["global_step"] >= args.total_timesteps:
+        print(f"{run_dir} had already finished its {args.total_timesteps} steps")
+        return {"run_dir": run_dir, "eval_returns": checkpoint["eval_returns"]}
+
+    # TRY NOT TO MODIFY: seeding
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
+        os.environ.setdefault("MUJOCO_GL", "disable")
+
+    # env setup: the evaluation env is seeded apart from the training env
+    env = make_env(args.env_id, args.seed)
+    eval_seed = args.seed + 100
+    video_folder = f"videos/{run_name}" if args.capture_video else None
+    eval_env = make_env(args.env_id, eval_seed, video_folder, video_every=args.eval_episodes)
+    obs_dim = int(np.prod(env.observation_space.shape))
+    action_dim = int(np.prod(env.action_space.shape))
+
+    actor = Actor(obs_dim, env.action_space).to(device)
+    qf = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
+    target_actor = Actor(obs_dim, env.action_space).to(device)
+    qf_target = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
+    target_actor.load_state_dict(actor.state_dict())
+    qf_target.load_state_dict(qf.state_dict())
+    # fused Adam; capturable, so that --cudagraphs can record the optimizer step in its graph
+    adam = functools.partial(optim.Adam, fused=True, capturable=args.cudagraphs)
+    q_optimizer = adam(qf.parameters(), lr=args.learning_rate)
+    actor_optimizer = adam(actor.parameters(), lr=args.learning_rate)
+
+    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device)
+
+    def update(batch: Batch, policy_step: bool) -> dict:
+        """One training iteration: the critics; every --policy-frequency steps the actor and the target
+        networks too. Returns what gets logged, by TensorBoard tag."""
+        with bf16_autocast(device, args.bf16):
+            qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
+            if policy_step:
+                actor_loss = update_actor(batch, actor, actor_optimizer, qf)
+                soft_update([target_actor, qf_target], [actor, qf], args.tau)
+        logs = {"losses/qf_values": qf_a_values.mean(), "losses/qf_loss": qf_loss / len(qf_a_values)}  # per critic, as CleanRL
+        if policy_step:
+            logs["losses/actor_loss"] = actor_loss
+        return logs
+
+    update = CudaGraph(update) if args.cudagraphs else update  # one graph per value of policy_step
+
+    nets = {"actor": actor, "qf": qf, "target_actor": target_actor, "qf_target": qf_target}
+    optimizers = {"q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer}
+    parts = {"buffer": rb}  # with the networks and optimizers, what a checkpoint holds
+    start_step, eval_returns = 0, []  # eval_returns: (step, mean return) of every evaluation
+    if checkpoint:
+        restore(checkpoint, env, nets, optimizers, **parts)
+        start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
+
+    def state(step: int) -> dict:  # a checkpoint
+        return snapshot(args, env, step, nets, optimizers, **parts, eval_returns=eval_returns)
+
+    writer, pbar = start_logging(args, run_name, run_dir, start_step, device)
+    sps_time, sps_step, sps = time.time(), start_step, 0.0
+    next_checkpoint = start_step + args.checkpoint_frequency
+
+    def run_evaluation(step: int):
+        returns = evaluate(actor, eval_env, args.eval_episodes, eval_seed)
+        eval_returns.append((step, float(returns.mean())))
+        writer.add_scalar("eval/episodic_return", returns.mean(), step)
+        pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
+        tqdm.write(f"step {step}: return {returns.mean():.1f} +- {returns.std():.1f}, {sps:.0f} steps/s")
+
+    obs = None  # None: an episode starts at this step
+    for global_step in range(start_step, args.total_timesteps):
+        if global_step % args.eval_frequency == 0:
+            run_evaluation(global_step)
+            sps_time = time.time()
+        if obs is None:
+            obs, _ = env.reset(seed=args.seed if global_step == 0 else None)
+
+        # ALGO LOGIC: put action logic here
+        if global_step < args.learning_starts:
+            actions = env.action_space.sample()
+        else:
+            actions = noisy_action(obs, actor, args.exploration_noise).cpu().numpy()
+
+        # execute the game and log data; a time-limit truncation is stored as not terminated, so its target bootstraps
+        next_obs, reward, terminated, truncated, info = env.step(actions)
+        rb.add(obs, actions, next_obs, reward, terminated)
+        obs = next_obs
+        if terminated or truncated:
+            writer.add_scalar("charts/episodic_return", info["episode"]["r"], global_step)
+            writer.add_scalar("charts/episodic_length", info["episode"]["l"], global_step)
+            obs = None
+
+        # ALGO LOGIC: training.
+        if global_step >= args.learning_starts:
+            batch = rb.sample(args.batch_size)
+            policy_step = global_step % args.policy_frequency == 0
+            try:
+                logs = update(batch, policy_step)
+                if policy_step and global_step % 100 == 0:
+                    log_scalars(writer, logs, global_step)
+            except NonFiniteError as quantity:
+                stop_non_finite(quantity, global_step, run_dir, args.cudagraphs, lambda: state(global_step))
+
+        if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded
+            sps = (global_step + 1 - sps_step) / (time.time() - sps_time)
+            writer.add_scalar("charts/SPS", sps, global_step)
+            sps_time, sps_step = time.time(), global_step + 1
+        pbar.update(1)
+        if args.checkpoint_frequency and obs is None and global_step + 1 >= next_checkpoint:
+            write_checkpoint(os.path.join(run_dir, CHECKPOINT), state(global_step + 1))
+            next_checkpoint = global_step + 1 + args.checkpoint_frequency
+
+    run_evaluation(args.total_timesteps)
+    if args.checkpoint_frequency:
+        write_checkpoint(os.path.join(run_dir, CHECKPOINT), state(args.total_timesteps))
+    pbar.close()
+    if args.save_model:
+        model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
+        torch.save({"actor": actor.state_dict(), "qf": qf.state_dict()}, model_path)
+        tqdm.write(f"model saved to {model_path}")
+    env.close()
+    eval_env.close()
+    writer.close()
+    return {**nets, **optimizers, "rb": rb, "run_dir": run_dir, "eval_returns": eval_returns}
+
+
+# --------------------------------------------------------------------------------------------------
+# Machinery. Nothing below changes what the algorithm computes: the command line and its checks, the
+# environment layer, logging, the NaN guard, --cudagraphs, and the checkpoints behind exact resume.
+
+
+def fail(message: str):
+    """Stop with one line on stderr and exit status 1, no traceback."""
+    raise SystemExit("error: " + " ".join(message.split()))
+
+
+def parse_args(argv=None) -> Args:
+    """The command line as checked Args. With --resume the run's own flags are the defaults, and a flag
+    given now may differ from the run's only if it does not change what is learned."""
+    args = tyro.cli(Args, args=argv)
+    if args.resume:
+        run_args = load_checkpoint(args.resume)["args"]
+        args = tyro.cli(Args, args=argv, default=Args(**run_args))
+        differing = [k for k, v in run_args.items() if k not in RESUMABLE_FLAGS and getattr(args, k) != v]
+        if differing:
+            flags = ", ".join(f"--{k.replace('_', '-')} {getattr(args, k)} (run: {run_args[k]})" for k in differing)
+            fail(f"--resume {args.resume}: {flags}; a resumed run keeps its hyperparameters")
+    check_args(args)
+    return args
+
+
+def check_args(args: Args):
+    checks = [
+        (args.total_timesteps > 0, f"--total-timesteps must be > 0, got {args.total_timesteps}"),
+        (args.buffer_size > 0, f"--buffer-size must be > 0, got {args.buffer_size}"),
+        (args.batch_size > 0, f"--batch-size must be > 0, got {args.batch_size}"),
+        (
+            args.learning_starts >= args.batch_size,
+            f"--learning-starts ({args.learning_starts}) must be >= --batch-size ({args.batch_size})",
+        ),
+        (args.learning_rate > 0, f"--learning-rate must be > 0, got {args.learning_rate}"),
+        (0 <= args.gamma <= 1, f"--gamma must be in [0, 1], got {args.gamma}"),
+        (0 < args.tau <= 1, f"--tau must be in (0, 1], got {args.tau}"),
+        (args.policy_noise >= 0, f"--policy-noise must be >= 0, got {args.policy_noise}"),
+        (args.noise_clip >= 0, f"--noise-clip must be >= 0, got {args.noise_clip}"),
+        (args.exploration_noise >= 0, f"--exploration-noise must be >= 0, got {args.exploration_noise}"),
+        (args.policy_frequency > 0, f"--policy-frequency must be > 0, got {args.policy_frequency}"),
+        (args.eval_frequency > 0, f"--eval-frequency must be > 0, got {args.eval_frequency}"),
+        (args.eval_episodes > 0, f"--eval-episodes must be > 0, got {args.eval_episodes}"),
+        (args.checkpoint_frequency >= 0, f"--checkpoint-frequency must be >= 0, got {args.checkpoint_frequency}"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            fail(message)
+    if args.cudagraphs and not (args.cuda and torch.cuda.is_available()):
+        reason = " and drops --no-cuda" if torch.cuda.is_available() else "; torch finds none here"
+        fail("--cudagraphs needs a CUDA GPU" + reason)
+
+
+def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
+    return gym.spaces.Box(space.low.astype(np.float32), space.high.astype(np.float32), dtype=np.float32)
+
+
+def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_every: int = 1):
+    """One environment with a flat float32 observation and a float32 Box action space.
+
+    A plain (not vectorised) env: the loop sees the true final observation of every episode and
+    resets itself, so no autoreset step can end up in the replay buffer."""
+    if env_id.startswith("dm_control/"):
+        import shimmy  # registers the DeepMind Control tasks as dm_control/<domain>-<task>-v0
+
+        gym.register_envs(shimmy)
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
+        hint = f"did you mean {', '.join(close)}?" if close else "use e.g. Hopper-v4 or dm_control/cartpole-swingup-v0"
+        fail(f"unknown --env-id {env_id!r}; {hint}")
+    try:
+        env = gym.make(env_id, render_mode="rgb_array" if video_folder else None)
+    except Exception as e:  # a registered id whose dependencies are missing, e.g. Hopper-v3 (mujoco-py)
+        fail(f"could not create --env-id {env_id!r}: {type(e).__name__}: {e}")
+    if not isinstance(env.action_space, gym.spaces.Box):
+        space = type(env.action_space).__name__
+        fail(f"--env-id {env_id!r} has a {space} action space; only continuous (Box) actions are supported")
+    if not (np.isfinite(env.action_space.low).all() and np.isfinite(env.action_space.high).all()):
+        fail(f"--env-id {env_id!r} has unbounded actions; the policies here act within finite bounds")
+    if isinstance(env.observation_space, gym.spaces.Dict):  # DeepMind Control observations are dicts of arrays
+        env = gym.wrappers.FlattenObservation(env)
+    env = gym.wrappers.TransformObservation(env, lambda obs: obs.astype(np.float32), float32_box(env.observation_space))
+    if env.action_space.dtype != np.float32:  # DeepMind Control declares float64 actions
+        to_env_dtype = lambda action, dtype=env.action_space.dtype: np.asarray(action, dtype=dtype)  # noqa: E731
+        env = gym.wrappers.TransformAction(env, to_env_dtype, float32_box(env.action_space))
+    env = gym.wrappers.RecordEpisodeStatistics(env)
+    if video_folder:
+        env = gym.wrappers.RecordVideo(env, video_folder, episode_trigger=lambda episode: episode % video_every == 0)
+    env.action_space.seed(seed)
+    return env
+
+
+def start_logging(args: Args, run_name: str, run_dir: str, start_step: int, device: torch.device):
+    """TensorBoard (a resumed run hides what the killed process logged after its checkpoint), Weights and
+    Biases with --track, and a progress bar on a terminal (in a log file the per-evaluation lines say the same)."""
+    if args.track:
+        try:
+            import wandb
+        except ImportError:
+            fail("--track needs Weights and Biases: pip install wandb")
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=run_name,
+            monitor_gym=True,
+            save_code=True,
+        )
+    writer = SummaryWriter(run_dir, purge_step=start_step if args.resume else None)
+    if not args.resume:
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+        )
+    pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
+    resumed = f", resumed at step {start_step}" if args.resume else ""
+    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}{resumed}")
+    return writer, pbar
+
+
+def bf16_autocast(device: torch.device, enabled: bool):
+    """--bf16: the matmuls of one training step in bfloat16. Autocast's cache of cast weights is off:
+    an optimizer updates weights in place within the step, and a cached cast would keep the old values."""
+    return torch.autocast(device.type, torch.bfloat16, enabled=enabled, cache_enabled=False)
+
+
+class NonFiniteError(Exception):
+    """A loss became NaN or infinite; raised before the optimizer step it would have poisoned."""
+
+
+def check_finite(value: torch.Tensor, name: str):
+    # a graph cannot stop on a value: under --cudagraphs the loop checks what it logs
+    if value.is_cuda and torch.cuda.is_current_stream_capturing():
+        return
+    if not torch.isfinite(value):
+        raise NonFiniteError(name)
+
+
+def log_scalars(writer: SummaryWriter, logs: dict, step: int):
+    """Writes {tag: scalar tensor}; a non-finite value stops the run (where --cudagraphs catches a NaN)."""
+    values = {tag: value.item() for tag, value in logs.items()}
+    for tag, value in values.items():
+        if not math.isfinite(value):
+            raise NonFiniteError(tag.split("/")[-1])
+    for tag, value in values.items():
+        writer.add_scalar(tag, value, step)
+
+
+def stop_non_finite(quantity: NonFiniteError, step: int, run_dir: str, cudagraphs: bool, last_good_state):
+    """Ends the run on a non-finite loss. An eager update stops before the optimizer step that the loss would
+    have poisoned, so the state is still finite and is saved; a recorded graph is checked only when it logs."""
+    if cudagraphs:
+        fail(
+            f"{quantity} became non-finite by step {step} (--cudagraphs checks every 100 steps and keeps no last finite "
+            "state; without it a run stops at the first bad update)"
+        )
+    path = os.path.join(run_dir, "last_good_state.pt")
+    write_checkpoint(path, last_good_state())
+    rates = [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(Args) if f.name.endswith(("lr", "learning_rate"))]
+    fail(
+        f"{quantity} became non-finite at step {step} (try a smaller {' or '.join(rates)}); the last finite state is in {path}"
+    )
+
+
+class CudaGraph:
+    """--cudagraphs: `update = CudaGraph(update)` runs `update(batch, policy_step)` as a CUDA graph, one graph
+    per value of the arguments that are not tensors. The first `warmup` calls of each run eagerly on a side
+    stream (they allocate the gradients and optimizer states the graph will reuse), the next one records the
+    graph, and from then on a call copies its tensors (a tensor, or a NamedTuple of them such as a Batch) into
+    the graph's own inputs and replays it: one launch instead of hundreds of small kernels, with no host
+    synchronisation. What it returns is overwritten by its next replay."""
+
+    def __init__(self, fn, warmup: int = 3):
+        self.fn, self.warmup = fn, warmup
+        self.calls, self.graphs, self.inputs, self.outputs = {}, {}, {}, {}
+
+    @staticmethod
+    def key(*inputs) -> tuple:
+        return tuple(x for x in inputs if not isinstance(x, (torch.Tensor, tuple)))
+
+    @staticmethod
+    def clone(x):  # a tensor, or a NamedTuple of them, copied; anything else as it is
+        if isinstance(x, torch.Tensor):
+            return x.clone()
+        return type(x)(*map(torch.clone, x)) if isinstance(x, tuple) else x
+
+    @staticmethod
+    def tensors(inputs) -> list:
+        return [t for x in inputs for t in ([x] if isinstance(x, torch.Tensor) else x if isinstance(x, tuple) else [])]
+
+    def __call__(self, *inputs):
+        key = self.key(*inputs)
+        if key in self.graphs:
+            for static, new in zip(self.tensors(self.inputs[key]), self.tensors(inputs)):
+                static.copy_(new)
+        else:
+            self.calls[key] = self.calls.get(key, 0) + 1
+            if self.calls[key] <= self.warmup:
+                stream = torch.cuda.Stream()
+                stream.wait_stream(torch.cuda.current_stream())
+                with torch.cuda.stream(stream):
+                    outputs = self.fn(*inputs)
+                torch.cuda.current_stream().wait_stream(stream)
+                return outputs
+            self.inputs[key] = [self.clone(x) for x in inputs]
+            self.graphs[key] = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graphs[key]):  # records the kernels without running them
+                self.outputs[key] = self.fn(*self.inputs[key])
+        self.graphs[key].replay()
+        return self.outputs[key]
+
+
 # Checkpoints: everything needed to continue a run exactly. They are taken at episode boundaries,
 # where an environment holds no state but its random generators, so any env can be resumed.
 CHECKPOINT = "checkpoint.pt"
 # flags that may differ between a run and its resumption: they don't change what is learned
-RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "cuda", "cudagraphs"}
+RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity"}
+RESUMABLE_FLAGS |= {"capture_video", "save_model", "cuda", "cudagraphs"}
+
+
+def snapshot(args: Args, env: gym.Env, global_step: int, nets: dict, optimizers: dict, **parts) -> dict:
+    """A run's state at `global_step`: its flags, networks, optimizers and random generators, and `parts`
+    (objects with a state_dict(), such as the replay buffer, or plain values such as the evaluations)."""
+    return {
+        "script": os.path.basename(__file__),
+        "args": vars(args),
+        "global_step": global_step,
+        "nets": {name: net.state_dict() for name, net in nets.items()},
+        "optimizers": {name: opt.state_dict() for name, opt in optimizers.items()},
+        **{name: part.state_dict() if hasattr(part, "state_dict") else part for name, part in parts.items()},
+        "rng": {
+            "python": random.getstate(),
+            "numpy": rng_state(np.random.mtrand._rand),
+            "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else [],
+            "action_space": rng_state(env.action_space.np_random),
+            "env": rng_state(env.unwrapped.np_random),
+        },
+    }
+
+
+def restore(checkpoint: dict, env: gym.Env, nets: dict, optimizers: dict, **parts):
+    """Loads a snapshot() into the objects it was taken of (its plain values are the caller's to read)."""
+    for name, net in nets.items():
+        net.load_state_dict(checkpoint["nets"][name])
+    for name, opt in optimizers.items():
+        state = checkpoint["optimizers"][name]
+        for group, current in zip(state["param_groups"], opt.param_groups):  # --cudagraphs may differ from the run's
+            group["capturable"] = current["capturable"]
+        opt.load_state_dict(state)
+    for name, part in parts.items():
+        part.load_state_dict(checkpoint[name])
+    rng = checkpoint["rng"]
+    random.setstate(rng["python"])
+    set_rng_state(np.random.mtrand._rand, rng["numpy"])
+    torch.set_rng_state(rng["torch"])
+    if rng["cuda"]:
+        torch.cuda.set_rng_state_all(rng["cuda"])
+    set_rng_state(env.action_space.np_random, rng["action_space"])
+    set_rng_state(env.unwrapped.np_random, rng["env"])
 
 
 def rng_state(rng) -> dict:
@@ -386,227 +673,6 @@ def load_checkpoint(run_dir: str) -> dict:
         found = checkpoint.get("script") if isinstance(checkpoint, dict) else None
         fail(f"{path} was not written by {script} (written by {found or 'something else'})")
     return checkpoint
-
-
-def parse_args(argv=None) -> Args:
-    args = tyro.cli(Args, args=argv)
-    if args.resume:  # the run's own flags become the defaults, so only flags given now can differ
-        args = tyro.cli(Args, args=argv, default=Args(**load_checkpoint(args.resume)["args"]))
-    return args
-
-
-def main(args: Args):
-    check_args(args)
-    checkpoint = load_checkpoint(args.resume) if args.resume else None
-    if checkpoint:
-        differing = [k for k, v in checkpoint["args"].items() if k not in RESUMABLE_FLAGS and getattr(args, k) != v]
-        if differing:
-            flags = ", ".join(f"--{k.replace('_', '-')} {getattr(args, k)} (run: {checkpoint['args'][k]})" for k in differing)
-            fail(f"--resume {args.resume}: {flags}; a resumed run keeps its hyperparameters")
-        run_dir = os.path.normpath(args.resume)
-        run_name = os.path.basename(run_dir)
-        if checkpoint["global_step"] >= args.total_timesteps:
-            print(f"{run_dir} had already finished its {args.total_timesteps} steps")
-            return {"run_dir": run_dir, "eval_returns": checkpoint["eval_returns"]}
-    else:
-        run_name = args.run_name or f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
-        run_dir = os.path.join("runs", run_name)
-
-    # TRY NOT TO MODIFY: seeding
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    if args.cudagraphs and device.type != "cuda":
-        fail("--cudagraphs needs a CUDA GPU" + (" and drops --no-cuda" if torch.cuda.is_available() else "; torch finds none here"))
-    if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
-        os.environ.setdefault("MUJOCO_GL", "disable")
-
-    # env setup: the evaluation env is seeded apart from the training env
-    env = make_env(args.env_id, args.seed)
-    eval_seed = args.seed + 100
-    video_folder = f"videos/{run_name}" if args.capture_video else None
-    eval_env = make_env(args.env_id, eval_seed, video_folder, video_every=args.eval_episodes)
-    obs_dim = int(np.prod(env.observation_space.shape))
-    action_dim = int(np.prod(env.action_space.shape))
-
-    actor = Actor(obs_dim, env.action_space).to(device)
-    qf = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
-    target_actor = Actor(obs_dim, env.action_space).to(device)
-    qf_target = QEnsemble(obs_dim, action_dim, num_q=2).to(device)
-    target_actor.load_state_dict(actor.state_dict())
-    qf_target.load_state_dict(qf.state_dict())
-    q_optimizer = optim.Adam(qf.parameters(), lr=args.learning_rate, fused=True, capturable=args.cudagraphs)
-    actor_optimizer = optim.Adam(actor.parameters(), lr=args.learning_rate, fused=True, capturable=args.cudagraphs)
-
-    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device)
-
-    def update(policy_step: bool):
-        """One training iteration on the batch at the buffer's drawn rows (the critics; every
-        --policy-frequency steps the actor and the target networks too)."""
-        with bf16_autocast(device, args.bf16):
-            batch = rb.batch()
-            qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
-            actor_loss = None
-            if policy_step:
-                actor_loss = update_actor(batch, actor, actor_optimizer, qf)
-                soft_update([target_actor, qf_target], [actor, qf], args.tau)
-        return qf_loss, qf_a_values, actor_loss
-
-    train = CudaGraph(update) if args.cudagraphs else update  # one graph per value of policy_step
-
-    nets = {"actor": actor, "qf": qf, "target_actor": target_actor, "qf_target": qf_target}
-    optimizers = {"q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer}
-    eval_returns = []  # (step, mean return) of every evaluation
-
-    def snapshot(next_step: int) -> dict:
-        return {
-            "script": os.path.basename(__file__),
-            "args": vars(args),
-            "global_step": next_step,
-            "eval_returns": eval_returns,
-            "nets": {name: net.state_dict() for name, net in nets.items()},
-            "optimizers": {name: opt.state_dict() for name, opt in optimizers.items()},
-            "buffer": {"rows": rb.storage[: rb.size].cpu().clone(), "pos": rb.pos},
-            "rng": {
-                "python": random.getstate(),
-                "numpy": rng_state(np.random.mtrand._rand),
-                "torch": torch.get_rng_state(),
-                "cuda": torch.cuda.get_rng_state_all() if device.type == "cuda" else [],
-                "action_space": rng_state(env.action_space.np_random),
-                "env": rng_state(env.unwrapped.np_random),
-            },
-        }
-
-    start_step = 0
-    if checkpoint:
-        start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
-        for name, net in nets.items():
-            net.load_state_dict(checkpoint["nets"][name])
-        for name, opt in optimizers.items():
-            for group in checkpoint["optimizers"][name]["param_groups"]:  # --cudagraphs may differ from the run's
-                group["capturable"] = args.cudagraphs
-            opt.load_state_dict(checkpoint["optimizers"][name])
-        rows = checkpoint["buffer"]["rows"]
-        rb.storage[: len(rows)] = rows.to(device)
-        rb.size, rb.pos = len(rows), checkpoint["buffer"]["pos"]
-        rng = checkpoint["rng"]
-        random.setstate(rng["python"])
-        set_rng_state(np.random.mtrand._rand, rng["numpy"])
-        torch.set_rng_state(rng["torch"])
-        if rng["cuda"]:
-            torch.cuda.set_rng_state_all(rng["cuda"])
-        set_rng_state(env.action_space.np_random, rng["action_space"])
-        set_rng_state(env.unwrapped.np_random, rng["env"])
-
-    if args.track:
-        try:
-            import wandb
-        except ImportError:
-            fail("--track needs Weights and Biases: pip install wandb")
-        wandb.init(
-            project=args.wandb_project_name,
-            entity=args.wandb_entity,
-            sync_tensorboard=True,
-            config=vars(args),
-            name=run_name,
-            monitor_gym=True,
-            save_code=True,
-        )
-    # a resumed run hides what the killed process logged after its checkpoint
-    writer = SummaryWriter(run_dir, purge_step=start_step if checkpoint else None)
-    if not checkpoint:
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
-        )
-
-    def run_evaluation(step: int):
-        returns = evaluate(actor, eval_env, args.eval_episodes, eval_seed)
-        eval_returns.append((step, float(returns.mean())))
-        writer.add_scalar("eval/episodic_return", returns.mean(), step)
-        pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
-        tqdm.write(f"step {step}/{args.total_timesteps}: eval return {returns.mean():.1f} +- {returns.std():.1f}, {sps:.0f} steps/s")
-
-    # the bar goes to a terminal; in a log file the per-evaluation lines say the same
-    pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
-    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}" + (f", resumed at step {start_step}" if checkpoint else ""))
-    sps_time, sps_step, sps = time.time(), start_step, 0.0
-    next_checkpoint = start_step + args.checkpoint_frequency
-
-    # TRY NOT TO MODIFY: start the game
-    obs = None  # None: an episode starts at this step
-    for global_step in range(start_step, args.total_timesteps):
-        if global_step % args.eval_frequency == 0:
-            run_evaluation(global_step)
-            sps_time = time.time()
-        if obs is None:
-            obs, _ = env.reset(seed=args.seed if global_step == 0 else None)
-
-        # ALGO LOGIC: put action logic here
-        if global_step < args.learning_starts:
-            actions = env.action_space.sample()
-        else:
-            with torch.no_grad():
-                actions = actor(torch.as_tensor(obs, device=device))
-                actions += torch.normal(0, actor.action_scale * args.exploration_noise)
-                actions = actions.cpu().numpy().clip(env.action_space.low, env.action_space.high)
-
-        # TRY NOT TO MODIFY: execute the game and log data.
-        next_obs, reward, terminated, truncated, info = env.step(actions)
-
-        # a time-limit truncation is stored as not terminated, so its target bootstraps
-        rb.add(obs, actions, next_obs, reward, terminated)
-        obs = next_obs
-        if terminated or truncated:
-            writer.add_scalar("charts/episodic_return", info["episode"]["r"], global_step)
-            writer.add_scalar("charts/episodic_length", info["episode"]["l"], global_step)
-            obs = None
-
-        # ALGO LOGIC: training.
-        if global_step >= args.learning_starts:
-            policy_step, log_step = global_step % args.policy_frequency == 0, global_step % 100 == 0
-            try:
-                rb.draw(args.batch_size)  # outside any graph: the buffer grows every step
-                qf_loss, qf_a_values, actor_loss = train(policy_step)
-                if args.cudagraphs and policy_step and log_step:  # a graph cannot stop on a value: check what it logs
-                    check_finite(qf_loss, "qf_loss")
-                    check_finite(actor_loss, "actor_loss")
-            except NonFiniteError as quantity:
-                if args.cudagraphs:
-                    fail(f"{quantity} became non-finite by step {global_step} (--cudagraphs checks every 100 steps and keeps no last finite state; without it a run stops at the first bad update)")
-                path = os.path.join(run_dir, "last_good_state.pt")
-                write_checkpoint(path, snapshot(global_step))
-                fail(f"{quantity} became non-finite at step {global_step} (try a smaller --learning-rate); the last finite state is in {path}")
-
-            if policy_step and log_step:
-                writer.add_scalar("losses/qf_values", qf_a_values.mean().item(), global_step)
-                writer.add_scalar("losses/qf_loss", qf_loss.item() / len(qf_a_values), global_step)  # per critic, as CleanRL
-                writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
-
-        if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded
-            sps = (global_step + 1 - sps_step) / (time.time() - sps_time)
-            writer.add_scalar("charts/SPS", sps, global_step)
-            sps_time, sps_step = time.time(), global_step + 1
-        pbar.update(1)
-        if args.checkpoint_frequency and obs is None and global_step + 1 >= next_checkpoint:
-            write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(global_step + 1))
-            next_checkpoint = global_step + 1 + args.checkpoint_frequency
-
-    run_evaluation(args.total_timesteps)
-    if args.checkpoint_frequency:
-        write_checkpoint(os.path.join(run_dir, CHECKPOINT), snapshot(args.total_timesteps))
-    pbar.close()
-    if args.save_model:
-        model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
-        torch.save({"actor": actor.state_dict(), "qf": qf.state_dict()}, model_path)
-        tqdm.write(f"model saved to {model_path}")
-    env.close()
-    eval_env.close()
-    writer.close()
-    return {"actor": actor, "qf": qf, "rb": rb, "run_dir": run_dir, "eval_returns": eval_returns}
 
 
 if __name__ == "__main__":

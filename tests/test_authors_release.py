@@ -2,6 +2,7 @@
 object and in our networks, the same batch, one training iteration each. Needs a checkout of
 github.com/yydsok/OPARL (tools/authors_release.py says which commit) named by OPARL_RELEASE_DIR;
 skipped without one. Also the adapter that runs the release: its dmc2gym stand-in and its loading."""
+
 import importlib.util
 import os
 import sys
@@ -40,9 +41,20 @@ def copy_critic(release_critic, ours: oparl.QEnsemble):
 
 
 def copy_actor(release_actor, ours: oparl.Actor):
-    ours.load_state_dict({"fc1.weight": release_actor.l1.weight, "fc1.bias": release_actor.l1.bias, "fc2.weight": release_actor.l2.weight,
-                          "fc2.bias": release_actor.l2.bias, "fc_mu.weight": release_actor.l3.weight, "fc_mu.bias": release_actor.l3.bias,
-                          "action_scale": ours.action_scale, "action_bias": ours.action_bias, "action_low": ours.action_low, "action_high": ours.action_high})
+    ours.load_state_dict(
+        {
+            "fc1.weight": release_actor.l1.weight,
+            "fc1.bias": release_actor.l1.bias,
+            "fc2.weight": release_actor.l2.weight,
+            "fc2.bias": release_actor.l2.bias,
+            "fc_mu.weight": release_actor.l3.weight,
+            "fc_mu.bias": release_actor.l3.bias,
+            "action_scale": ours.action_scale,
+            "action_bias": ours.action_bias,
+            "action_low": ours.action_low,
+            "action_high": ours.action_high,
+        }
+    )
 
 
 @pytest.fixture
@@ -50,10 +62,17 @@ def both():
     """The release's TD3 (noise off) and our networks, holding the same weights."""
     module = release_td3()
     torch.manual_seed(0)
-    policy = module.TD3(OBS_DIM, ACTION_DIM, max_action=1.0, policy_noise=0.0, noise_clip=0.5, policy_freq=2, reset_freq=20000, Q_num=Q_NUM)
+    policy = module.TD3(
+        OBS_DIM, ACTION_DIM, max_action=1.0, policy_noise=0.0, noise_clip=0.5, policy_freq=2, reset_freq=20000, Q_num=Q_NUM
+    )
     space = oparl.gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
-    ours = {"qf": oparl.QEnsemble(OBS_DIM, ACTION_DIM, Q_NUM), "qf_target": oparl.QEnsemble(OBS_DIM, ACTION_DIM, Q_NUM),
-            "pessimistic": oparl.Actor(OBS_DIM, space), "pessimistic_target": oparl.Actor(OBS_DIM, space), "optimistic": oparl.Actor(OBS_DIM, space)}
+    ours = {
+        "qf": oparl.QEnsemble(OBS_DIM, ACTION_DIM, Q_NUM),
+        "qf_target": oparl.QEnsemble(OBS_DIM, ACTION_DIM, Q_NUM),
+        "pessimistic": oparl.Actor(OBS_DIM, space),
+        "pessimistic_target": oparl.Actor(OBS_DIM, space),
+        "optimistic": oparl.Actor(OBS_DIM, space),
+    }
     with torch.no_grad():  # targets apart from their sources, so that the target networks are really the ones used
         for p in [*policy.critic_target.parameters(), *policy.actor_target.parameters()]:
             p.add_(0.01 * torch.randn_like(p))
@@ -63,8 +82,13 @@ def both():
     copy_actor(policy.actor_target, ours["pessimistic_target"])
     copy_actor(policy.exit_actor, ours["optimistic"])
     g = torch.Generator().manual_seed(1)
-    batch = oparl.Batch(torch.randn(BATCH, OBS_DIM, generator=g), torch.rand(BATCH, ACTION_DIM, generator=g) * 2 - 1, torch.randn(BATCH, OBS_DIM, generator=g),
-                        torch.randn(BATCH, generator=g), (torch.rand(BATCH, generator=g) < 0.2).float())
+    batch = oparl.Batch(
+        torch.randn(BATCH, OBS_DIM, generator=g),
+        torch.rand(BATCH, ACTION_DIM, generator=g) * 2 - 1,
+        torch.randn(BATCH, OBS_DIM, generator=g),
+        torch.randn(BATCH, generator=g),
+        (torch.rand(BATCH, generator=g) < 0.2).float(),
+    )
     return module, policy, ours, batch
 
 
@@ -110,7 +134,9 @@ def test_one_training_iteration_matches_the_release(both, monkeypatch):
     assert qf_loss.item() == pytest.approx(Q_NUM * released["critic_loss"], rel=1e-5)
     pessimistic_optimizer = torch.optim.Adam(ours["pessimistic"].parameters(), lr=3e-4, eps=1e-30, fused=True)
     optimistic_optimizer = torch.optim.Adam(ours["optimistic"].parameters(), lr=3e-4, eps=1e-30, fused=True)
-    pessimistic_loss, optimistic_loss = oparl.update_actors(batch, ours["pessimistic"], ours["optimistic"], pessimistic_optimizer, optimistic_optimizer, ours["qf"])
+    pessimistic_loss, optimistic_loss = oparl.update_actors(
+        batch, ours["pessimistic"], ours["optimistic"], pessimistic_optimizer, optimistic_optimizer, ours["qf"]
+    )
     # both actor losses come after the critic's step, in the release as here
     assert pessimistic_loss.item() == pytest.approx(released["actor_loss"], rel=1e-4, abs=1e-6)
     assert optimistic_loss.item() == pytest.approx(released["exit_actor_loss"], rel=1e-4, abs=1e-6)
@@ -122,8 +148,11 @@ def test_one_training_iteration_matches_the_release(both, monkeypatch):
     for name in ("qf", "qf_target"):  # the critic after its Adam step, and the Polyak-averaged target
         for mine, theirs in zip(ours[name].parameters(), expected[name].parameters()):
             torch.testing.assert_close(mine, theirs, rtol=1e-4, atol=1e-6)
-    for mine, theirs in [(ours["pessimistic"].fc1.weight, policy.actor.l1.weight), (ours["optimistic"].fc_mu.weight, policy.exit_actor.l3.weight),
-                         (ours["pessimistic_target"].fc2.weight, policy.actor_target.l2.weight)]:
+    for mine, theirs in [
+        (ours["pessimistic"].fc1.weight, policy.actor.l1.weight),
+        (ours["optimistic"].fc_mu.weight, policy.exit_actor.l3.weight),
+        (ours["pessimistic_target"].fc2.weight, policy.actor_target.l2.weight),
+    ]:
         torch.testing.assert_close(mine, theirs, rtol=1e-4, atol=1e-6)
 
 
@@ -159,7 +188,9 @@ def test_the_optimistic_candidate_choice_matches_the_release(both):
 
 
 def test_the_dmc2gym_stand_in_behaves_as_dmc2gym():
-    env = authors_release.dmc2gym_module().make(domain_name="cartpole", task_name="swingup", seed=3, from_pixels=False, visualize_reward=False)
+    env = authors_release.dmc2gym_module().make(
+        domain_name="cartpole", task_name="swingup", seed=3, from_pixels=False, visualize_reward=False
+    )
     again = authors_release.DMCEnv("cartpole", "swingup", seed=3)
     obs = env.reset()
     assert obs.dtype == np.float64 and obs.shape == env.observation_space.shape == (5,)
@@ -200,11 +231,14 @@ def test_main_is_loaded_with_its_cuda_calls_on_td3s_device(tmp_path):
         authors_release.release_main_source(str(tmp_path))
 
 
-@pytest.mark.parametrize("flags, message", [
-    (["--release-dir", "nowhere"], "--release-dir nowhere: no main.py"),
-    (["--env-id", "Hopper-v4"], "the release runs DeepMind Control tasks only"),
-    (["--env-id", "dm_control/walker-fly-v0"], "dm_control has no task walker-fly"),
-])
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--release-dir", "nowhere"], "--release-dir nowhere: no main.py"),
+        (["--env-id", "Hopper-v4"], "the release runs DeepMind Control tasks only"),
+        (["--env-id", "dm_control/walker-fly-v0"], "dm_control has no task walker-fly"),
+    ],
+)
 def test_bad_input_is_refused_in_one_line(flags, message, tmp_path):
     release = tmp_path / "release"
     release.mkdir()
@@ -219,11 +253,15 @@ def test_bad_input_is_refused_in_one_line(flags, message, tmp_path):
 def test_the_releases_evaluations_are_read_from_its_log_step_zero_included(tmp_path):
     (tmp_path / "seed=2_result.txt").write_text(
         "policy:TD3 Domain: walker Task: walk seed:2 policy_utd:1 policy_interval:1 reset_freq:20000 qnum:5 N:1 bili:2\n"
-        "Timesteps 0 Evaluation over 10 episodes: 4.968\nTimesteps 5000 Evaluation over 10 episodes: -12.500\n")
+        "Timesteps 0 Evaluation over 10 episodes: 4.968\nTimesteps 5000 Evaluation over 10 episodes: -12.500\n"
+    )
     evaluated = authors_release.evaluations(str(tmp_path), seed=2)
     assert evaluated == [(0, 4.968), (5000, -12.5)]
     authors_release.write_eval_series(str(tmp_path / "eval_series.csv"), "dm_control/walker-walk-v0", 2, evaluated)
     assert (tmp_path / "eval_series.csv").read_text().splitlines() == [
-        "algo,env_id,seed,step,episodic_return", "oparl_release,dm_control/walker-walk-v0,2,0,4.9680", "oparl_release,dm_control/walker-walk-v0,2,5000,-12.5000"]
+        "algo,env_id,seed,step,episodic_return",
+        "oparl_release,dm_control/walker-walk-v0,2,0,4.9680",
+        "oparl_release,dm_control/walker-walk-v0,2,5000,-12.5000",
+    ]
     with pytest.raises(SystemExit, match="holds no evaluation"):
         authors_release.evaluations(str(tmp_path), seed=3)

@@ -2,6 +2,7 @@
 
 The tests that need a GPU skip on a machine without CUDA (CI has none); run them on one with
 `python -m pytest tests/test_cudagraphs.py tests/test_reliability.py -k cudagraphs`."""
+
 import subprocess
 
 import pytest
@@ -21,13 +22,23 @@ def test_graphs_train_as_the_eager_updates_do(script, tmp_path, monkeypatch):
     module = load(script)
     runs = {}
     for graphs in (False, True):
-        args = small_args(module, env_id="Pendulum-v1", total_timesteps=800, learning_starts=300, eval_frequency=800, cudagraphs=graphs, run_name=f"graphs_{graphs}")
+        args = small_args(
+            module,
+            env_id="Pendulum-v1",
+            total_timesteps=800,
+            learning_starts=300,
+            eval_frequency=800,
+            cudagraphs=graphs,
+            run_name=f"graphs_{graphs}",
+        )
         runs[graphs] = module.main(args)
     eager, graphed = (scalars(runs[g]["run_dir"]) for g in (False, True))
     for tag in LOSSES:
         steps = [step for step, _ in eager[tag]]
         assert steps == [step for step, _ in graphed[tag]] and len(steps) >= 4, tag
-        torch.testing.assert_close(torch.tensor([v for _, v in graphed[tag]]), torch.tensor([v for _, v in eager[tag]]), rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(
+            torch.tensor([v for _, v in graphed[tag]]), torch.tensor([v for _, v in eager[tag]]), rtol=1e-4, atol=1e-5
+        )
     for (name, a), b in zip(runs[False]["actor"].state_dict().items(), runs[True]["actor"].state_dict().values()):
         torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-4, msg=name)
 
@@ -39,25 +50,27 @@ def test_training_syncs_nothing_with_the_host_once_recorded(script, tmp_path, mo
     'error' sync debug mode any .item(), host copy or NaN check there would raise."""
     monkeypatch.chdir(tmp_path)
     module = load(script)
-    args = small_args(module, env_id="Pendulum-v1", total_timesteps=400, learning_starts=300, eval_frequency=400, cudagraphs=True)
-    draw, call = module.ReplayBuffer.draw, module.CudaGraph.__call__
+    args = small_args(
+        module, env_id="Pendulum-v1", total_timesteps=400, learning_starts=300, eval_frequency=400, cudagraphs=True
+    )
+    sample, call = module.ReplayBuffer.sample, module.CudaGraph.__call__
     replays = []
 
-    def strict_draw(self, *shape):
+    def strict_sample(self, *shape):
         torch.cuda.set_sync_debug_mode("error")  # on until the update returns
-        return draw(self, *shape)
+        return sample(self, *shape)
 
-    def strict_call(self, *key):
+    def strict_call(self, *inputs):
         try:
-            if key not in self.graphs:  # warm-up and recording may sync; replays must not
+            if self.key(*inputs) not in self.graphs:  # warm-up and recording may sync; replays must not
                 torch.cuda.set_sync_debug_mode("default")
             else:
-                replays.append(key)
-            return call(self, *key)
+                replays.append(self.key(*inputs))
+            return call(self, *inputs)
         finally:
             torch.cuda.set_sync_debug_mode("default")
 
-    monkeypatch.setattr(module.ReplayBuffer, "draw", strict_draw)
+    monkeypatch.setattr(module.ReplayBuffer, "sample", strict_sample)
     monkeypatch.setattr(module.CudaGraph, "__call__", strict_call)
     module.main(args)
     assert len(replays) > 50
@@ -66,7 +79,11 @@ def test_training_syncs_nothing_with_the_host_once_recorded(script, tmp_path, mo
 @needs_cuda
 @pytest.mark.parametrize("script", OFF_POLICY)
 def test_non_finite_loss_under_graphs_stops_at_a_logging_step(script, tmp_path):
-    flags = ["--env-id", "Pendulum-v1", *cli_flags(script, total_timesteps=800, learning_starts=100, batch_size=32, eval_frequency=800, eval_episodes=1)]
+    flags = [
+        "--env-id",
+        "Pendulum-v1",
+        *cli_flags(script, total_timesteps=800, learning_starts=100, batch_size=32, eval_frequency=800, eval_episodes=1),
+    ]
     command = script_command(script, *flags, critic_lr_flag(script), "1e30", "--cudagraphs", "--run-name", "nan")
     result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert result.returncode == 1

@@ -1,5 +1,6 @@
 """The docs hold together: every relative link and image points to a file that exists (and a heading
 that exists, for links with #anchors), and the README stays a landing page."""
+
 import glob
 import os
 import re
@@ -8,7 +9,13 @@ import pytest
 
 from conftest import REPO
 
-PAGES = sorted([os.path.join(REPO, "README.md"), os.path.join(REPO, "results", "README.md"), *glob.glob(os.path.join(REPO, "docs", "*.md"))])
+PAGES = sorted(
+    [
+        os.path.join(REPO, "README.md"),
+        os.path.join(REPO, "results", "README.md"),
+        *glob.glob(os.path.join(REPO, "docs", "*.md")),
+    ]
+)
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
 FENCE = re.compile(r"^```.*?^```", re.S | re.M)
 

@@ -1,4 +1,5 @@
 """Whole runs of every script: what they write, what they print, how they refuse bad input."""
+
 import functools
 import os
 import subprocess
@@ -11,7 +12,16 @@ from conftest import ON_POLICY, REPO, SCRIPTS, cli_flags, load, scalars, small_a
 
 COMMON_TAGS = {"eval/episodic_return", "charts/episodic_return", "charts/episodic_length", "charts/SPS"}
 CRITIC_TAGS = {"losses/qf_loss", "losses/qf_values"}
-PPO_TAGS = {"losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl", "losses/old_approx_kl", "losses/clipfrac", "losses/explained_variance", "charts/learning_rate"}
+PPO_TAGS = {
+    "losses/policy_loss",
+    "losses/value_loss",
+    "losses/entropy",
+    "losses/approx_kl",
+    "losses/old_approx_kl",
+    "losses/clipfrac",
+    "losses/explained_variance",
+    "charts/learning_rate",
+}
 # what each script logs beyond the common tags
 EXTRA_TAGS = {
     "td3": CRITIC_TAGS | {"losses/actor_loss"},
@@ -20,7 +30,14 @@ EXTRA_TAGS = {
     "ppo": PPO_TAGS,
     "rnd": PPO_TAGS | {"charts/intrinsic_reward", "losses/rnd_loss"},
     "ebd": PPO_TAGS | {"charts/intrinsic_reward", "losses/forward_model_loss"},
-    "oparl": CRITIC_TAGS | {"losses/pessimistic_actor_loss", "losses/optimistic_actor_loss", "charts/q_ensemble_std", "charts/optimistic_share", "charts/resets"},
+    "oparl": CRITIC_TAGS
+    | {
+        "losses/pessimistic_actor_loss",
+        "losses/optimistic_actor_loss",
+        "charts/q_ensemble_std",
+        "charts/optimistic_share",
+        "charts/resets",
+    },
 }
 
 
@@ -50,7 +67,7 @@ def test_save_model_writes_loadable_weights(script, tmp_path, monkeypatch):
     result = module.main(small_args(module, env_id="Pendulum-v1", save_model=True, run_name="run"))
     path = os.path.join("runs", "run", f"{script}_continuous_action.cleanrl_model")
     saved = torch.load(path, weights_only=True)
-    actor = result["actor"]
+    actor = result["agent" if script in ON_POLICY else "actor"]  # what the file saves as "actor"
     for name, tensor in actor.state_dict().items():
         torch.testing.assert_close(saved["actor"][name], tensor)
     assert ("normalizer" if script in ON_POLICY else "qf") in saved
@@ -83,7 +100,12 @@ VIDEO_ENV = "InvertedPendulum-v4"
 def rendering_works():
     probe = f"import gymnasium as gym; e = gym.make('{VIDEO_ENV}', render_mode='rgb_array'); e.reset(seed=0); assert e.render().mean() > 0"
     try:
-        return subprocess.run([sys.executable, "-c", probe], env={**os.environ, "MUJOCO_GL": "egl"}, capture_output=True, timeout=120).returncode == 0
+        return (
+            subprocess.run(
+                [sys.executable, "-c", probe], env={**os.environ, "MUJOCO_GL": "egl"}, capture_output=True, timeout=120
+            ).returncode
+            == 0
+        )
     except subprocess.TimeoutExpired:
         return False
 
@@ -92,7 +114,11 @@ def rendering_works():
 def test_capture_video_records_evaluation_episodes(script, tmp_path):
     if not rendering_works():
         pytest.skip(f"no headless OpenGL here: MUJOCO_GL=egl could not render {VIDEO_ENV} (install libegl1 / libosmesa6)")
-    flags = ["--env-id", VIDEO_ENV, *cli_flags(script, total_timesteps=300, learning_starts=300, eval_frequency=300, eval_episodes=2)]
+    flags = [
+        "--env-id",
+        VIDEO_ENV,
+        *cli_flags(script, total_timesteps=300, learning_starts=300, eval_frequency=300, eval_episodes=2),
+    ]
     result = subprocess.run(
         [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags, "--capture-video", "--run-name", "run"],
         cwd=tmp_path,

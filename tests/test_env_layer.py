@@ -1,4 +1,5 @@
 """The environment layer every script carries: MuJoCo and DeepMind Control, dtypes, episode ends."""
+
 import gymnasium as gym
 import numpy as np
 import pytest

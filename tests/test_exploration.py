@@ -1,4 +1,7 @@
 """RND's and EBD's defining parts: each bonus, the normalisation around it, and how it enters PPO's advantage."""
+
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -100,7 +103,9 @@ def test_ebd_loss_trains_each_member_on_its_own_sample():
     inputs, targets = torch.randn(10, 3), torch.randn(10, 2)
     samples = torch.tensor([[0, 0, 1, 2], [3, 4, 4, 5], [9, 8, 7, 7]])
     loss = ebd.forward_model_loss(models, inputs, targets, samples)
-    by_hand = torch.stack([((member_prediction(models, k, inputs[samples[k]]) - targets[samples[k]]) ** 2).mean() for k in range(3)]).mean()
+    by_hand = torch.stack(
+        [((member_prediction(models, k, inputs[samples[k]]) - targets[samples[k]]) ** 2).mean() for k in range(3)]
+    ).mean()
     torch.testing.assert_close(loss, by_hand)
     # transition 9 is in member 2's sample only: changing its target changes member 2's gradients alone
     loss.backward()
@@ -126,14 +131,14 @@ def test_ebd_members_see_different_bootstrap_samples_of_each_rollout(monkeypatch
     torch.manual_seed(0)
     args = ebd.Args(num_steps=64, num_minibatches=4, update_epochs=2, num_models=3)
     rollout = ebd.Rollout(64, 2, 1, torch.device("cpu"))
-    for tensor in rollout.fields().values():
+    for tensor in vars(rollout).values():
         tensor.normal_()
     agent, models = ebd.Agent(2, 1), ebd.ForwardModels(3, 2, 1)
     optimizer = torch.optim.Adam([*agent.parameters(), *models.parameters()], lr=1e-3)
     weights_before = models.weights[0].detach().clone()
     inputs, targets = torch.randn(64, 3), torch.randn(64, 2)
     returns = torch.randn(64)
-    ebd.update_policy(rollout, torch.randn(64), returns, returns, inputs, targets, agent, models, optimizer, args)
+    ebd.update_policy(rollout, torch.randn(64), returns, returns, (inputs, targets), agent, models, optimizer, args)
     assert len(seen) == 8 and all(s.shape == (3, 16) for s in seen)
     first_epoch, second_epoch = torch.cat(seen[:4], 1), torch.cat(seen[4:], 1)
     for k in range(3):
@@ -157,14 +162,18 @@ def test_combined_advantage_and_non_episodic_intrinsic_gae_by_hand(module):
     rollout.episode_ends.copy_(torch.tensor([0.0, 1.0, 0.0]))  # an episode ends at step 1
     int_rewards = torch.tensor([1.0, 0.0, 2.0])
     args = module.Args(gamma=0.9, gae_lambda=0.8, int_gamma=0.5, ext_coef=2.0, int_coef=1.0)
-    advantages, ext_returns, int_returns = module.advantages_and_returns(rollout, int_rewards, (torch.tensor(2.0), torch.tensor(1.0)), args)
+    advantages, ext_returns, int_returns = module.advantages_and_returns(
+        rollout, int_rewards, (torch.tensor(2.0), torch.tensor(1.0)), args
+    )
     # extrinsic, cut at step 1 (as PPO's test): 2.12, 1.0, 3.3
     # intrinsic, not cut: t=2: 2 + .5*1 - .5 = 2; t=1: .5*.5 - .5 + .5*.8*2 = .55; t=0: 1 + .25 - .5 + .4*.55 = .97
     torch.testing.assert_close(advantages, 2.0 * torch.tensor([2.12, 1.0, 3.3]) + torch.tensor([0.97, 0.55, 2.0]))
     torch.testing.assert_close(ext_returns, torch.tensor([2.62, 2.0, 4.8]))
     torch.testing.assert_close(int_returns, torch.tensor([1.47, 1.05, 2.5]))
     rollout.episode_ends.zero_()  # no episode end: the extrinsic part changes, the intrinsic one does not
-    advantages_no_end, ext_no_end, int_no_end = module.advantages_and_returns(rollout, int_rewards, (torch.tensor(2.0), torch.tensor(1.0)), args)
+    advantages_no_end, ext_no_end, int_no_end = module.advantages_and_returns(
+        rollout, int_rewards, (torch.tensor(2.0), torch.tensor(1.0)), args
+    )
     torch.testing.assert_close(int_no_end, int_returns)
     assert not torch.allclose(ext_no_end, ext_returns)
 
@@ -182,7 +191,9 @@ def test_observation_statistics_and_intrinsic_return_std_by_hand(module):
     np.testing.assert_allclose(normalizer.obs_rms.var, both.var(0), rtol=1e-5)
     mean, std = both.mean(0), both.std(0)
     obs = torch.tensor(np.stack([mean + 2 * std, mean - 10 * std, mean]), dtype=torch.float32)
-    torch.testing.assert_close(normalizer.observation(obs), torch.tensor([[2.0] * 3, [-5.0] * 3, [0.0] * 3]), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(
+        normalizer.observation(obs), torch.tensor([[2.0] * 3, [-5.0] * 3, [0.0] * 3]), rtol=1e-4, atol=1e-4
+    )
 
     rollouts = [torch.tensor([1.0, 2.0, 0.5, 3.0]), torch.tensor([0.2, 4.0, 1.0])]
     outputs = [normalizer.intrinsic(r) for r in rollouts]

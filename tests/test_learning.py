@@ -2,6 +2,7 @@
 
 Thresholds come from measured runs (see docs/tests.md); Pendulum-v1's returns go
 from about -1300 (random) to about -150 (solved)."""
+
 import pytest
 
 from conftest import load, small_args
@@ -23,7 +24,13 @@ def test_learns_a_small_task(script, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     module = load(script)
     env_id, total, learning_starts, threshold = BUDGETS[script]
-    quick = {"learning_starts": learning_starts, "batch_size": 256} if learning_starts else {"num_steps": 2048, "num_minibatches": 32, "update_epochs": 10}
-    args = small_args(module, env_id=env_id, seed=1, total_timesteps=total, eval_frequency=total, eval_episodes=10, run_name="run", **quick)
+    quick = (
+        {"learning_starts": learning_starts, "batch_size": 256}
+        if learning_starts
+        else {"num_steps": 2048, "num_minibatches": 32, "update_epochs": 10}
+    )
+    args = small_args(
+        module, env_id=env_id, seed=1, total_timesteps=total, eval_frequency=total, eval_episodes=10, run_name="run", **quick
+    )
     final_return = module.main(args)["eval_returns"][-1][1]
     assert final_return > threshold

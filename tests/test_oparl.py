@@ -1,4 +1,5 @@
 """OPARL's mechanisms, each pinned so that changing it fails a test."""
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -56,7 +57,10 @@ def test_each_actor_gets_only_its_own_loss_gradient():
     batch = batch_of(128, torch.zeros(128), torch.zeros(128))
     obs = batch.observations
     expected = {}
-    for name, actor, reduce in [("pes", pessimistic, lambda q: q.min(0).values), ("opt", optimistic, lambda q: q.max(0).values)]:
+    for name, actor, reduce in [
+        ("pes", pessimistic, lambda q: q.min(0).values),
+        ("opt", optimistic, lambda q: q.max(0).values),
+    ]:
         (-reduce(qf(obs, actor(obs))).mean()).backward()  # this actor's loss alone
         expected.update({(name, n): p.grad.clone() for n, p in actor.named_parameters()})
         actor.zero_grad(set_to_none=True)
@@ -161,7 +165,9 @@ def test_release_critic_style():
 
 def run(tmp_path, monkeypatch, name, **overrides):
     monkeypatch.chdir(tmp_path)
-    defaults = dict(env_id="Pendulum-v1", total_timesteps=600, learning_starts=300, batch_size=32, eval_frequency=600, run_name=name)
+    defaults = dict(
+        env_id="Pendulum-v1", total_timesteps=600, learning_starts=300, batch_size=32, eval_frequency=600, run_name=name
+    )
     return oparl.main(small_args(oparl, **{**defaults, **overrides}))
 
 

@@ -1,4 +1,5 @@
 """plot_results.py on synthetic TensorBoard logs with known values."""
+
 import os
 
 import numpy as np
@@ -12,9 +13,18 @@ DMC_A, DMC_B = "dm_control/cartpole-swingup-v0", "dm_control/walker-walk-v0"
 
 def write_run(root, exp_name, env_id, seed, returns, every=5000, **params):
     """A run folder as the scripts write it: the hyperparameter table and eval/episodic_return."""
-    run_dir = os.path.join(root, f"{env_id.replace('/', '-')}__{exp_name}__{seed}__{'_'.join(f'{k}{v}' for k, v in params.items())}")
+    run_dir = os.path.join(
+        root, f"{env_id.replace('/', '-')}__{exp_name}__{seed}__{'_'.join(f'{k}{v}' for k, v in params.items())}"
+    )
     writer = SummaryWriter(run_dir)
-    table = {"exp_name": exp_name, "seed": seed, "env_id": env_id, "run_name": os.path.basename(run_dir), "gamma": 0.99, **params}
+    table = {
+        "exp_name": exp_name,
+        "seed": seed,
+        "env_id": env_id,
+        "run_name": os.path.basename(run_dir),
+        "gamma": 0.99,
+        **params,
+    }
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in table.items()))
     for i, value in enumerate(returns):
         writer.add_scalar("eval/episodic_return", value, i * every)
@@ -208,7 +218,11 @@ def test_each_paper_system_keeps_its_colour_and_other_names_take_the_free_ones()
     assert pr.colors_of(["oparl", "rnd", "ebd"]) == {"oparl": "C0", "rnd": "C4", "ebd": "C5"}
     assert pr.colors_of(["ebd", "ppo", "td3"]) == {"ebd": "C5", "ppo": "C3", "td3": "C1"}
     # an ablation figure: OPARL keeps C0, its variants take C1, C2, ... in order
-    assert pr.colors_of(["oparl", "oparl_optimistic_only", "oparl_two_critics"]) == {"oparl": "C0", "oparl_optimistic_only": "C1", "oparl_two_critics": "C2"}
+    assert pr.colors_of(["oparl", "oparl_optimistic_only", "oparl_two_critics"]) == {
+        "oparl": "C0",
+        "oparl_optimistic_only": "C1",
+        "oparl_two_critics": "C2",
+    }
 
 
 def test_table_lists_every_final_return_per_seed(sweep, tmp_path):
@@ -282,7 +296,10 @@ def test_random_scores_file_errors_are_one_line(mujoco_sweep, tmp_path):
     root, _ = mujoco_sweep
     bad = tmp_path / "bad.csv"
     bad.write_text("env,score\nAnt-v4,1\n")
-    for path, message in [(str(tmp_path / "missing.csv"), "no such file"), (str(bad), "needs the columns env_id and random_return")]:
+    for path, message in [
+        (str(tmp_path / "missing.csv"), "no such file"),
+        (str(bad), "needs the columns env_id and random_return"),
+    ]:
         with pytest.raises(SystemExit, match=message):
             pr.main([root, "--out", str(tmp_path / "out"), "--random-scores", path])
 

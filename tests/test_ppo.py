@@ -1,4 +1,5 @@
 """PPO's defining parts: GAE, the clipped objective, CleanRL's normalisation, deterministic evaluation."""
+
 import math
 
 import gymnasium as gym
@@ -69,7 +70,9 @@ def test_running_mean_std_matches_numpy():
 
 def test_evaluation_is_deterministic_and_leaves_the_statistics_alone(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    result = ppo.main(small_args(ppo, env_id="Pendulum-v1", total_timesteps=600, eval_frequency=600, eval_episodes=2, run_name="run"))
+    result = ppo.main(
+        small_args(ppo, env_id="Pendulum-v1", total_timesteps=600, eval_frequency=600, eval_episodes=2, run_name="run")
+    )
     agent, normalizer, env = result["agent"], result["normalizer"], ppo.make_env("Pendulum-v1", seed=101)
     mean_before, count_before = normalizer.obs_rms.mean.copy(), normalizer.obs_rms.count
     first = ppo.evaluate(agent, normalizer, env, 2, seed=101)

@@ -1,4 +1,5 @@
 """REDQ's defining parts: the random-subset min target, G critic updates per step, the mean-Q actor."""
+
 import copy
 
 import gymnasium as gym
@@ -14,7 +15,13 @@ SPACE = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
 
 
 def batch_of(n):
-    return redq.Batch(torch.randn(n, OBS_DIM), torch.rand(n, ACTION_DIM), torch.randn(n, OBS_DIM), torch.randn(n), (torch.rand(n) < 0.2).float())
+    return redq.Batch(
+        torch.randn(n, OBS_DIM),
+        torch.rand(n, ACTION_DIM),
+        torch.randn(n, OBS_DIM),
+        torch.randn(n),
+        (torch.rand(n) < 0.2).float(),
+    )
 
 
 def test_target_takes_the_min_over_a_fresh_random_subset_of_members():
@@ -56,7 +63,18 @@ def test_actor_ascends_the_mean_of_all_critics():
 
 def test_utd_ratio_critic_updates_and_one_actor_update_per_step(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    result = redq.main(small_args(redq, env_id="Pendulum-v1", total_timesteps=330, learning_starts=300, utd_ratio=3, num_q=4, eval_frequency=330, run_name="run"))
+    result = redq.main(
+        small_args(
+            redq,
+            env_id="Pendulum-v1",
+            total_timesteps=330,
+            learning_starts=300,
+            utd_ratio=3,
+            num_q=4,
+            eval_frequency=330,
+            run_name="run",
+        )
+    )
     critic_steps = {int(s["step"]) for s in result["q_optimizer"].state.values()}
     actor_steps = {int(s["step"]) for s in result["actor_optimizer"].state.values()}
     assert critic_steps == {30 * 3} and actor_steps == {30}

@@ -1,4 +1,5 @@
 """Checkpoints, exact resume after SIGKILL, safe loading, the NaN guard, and every bad input."""
+
 import os
 import random
 import signal
@@ -52,7 +53,13 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
     time.sleep(random.uniform(0.0, 1.5))  # an arbitrary moment: mid-step, mid-evaluation or mid-write
     killed.send_signal(signal.SIGKILL)
     killed.wait()
-    resumed = subprocess.run(script_command(script, "--resume", "runs/killed", "--save-model"), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    resumed = subprocess.run(
+        script_command(script, "--resume", "runs/killed", "--save-model"),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert resumed.returncode == 0, resumed.stderr
     assert full.wait(timeout=300) == 0
 
@@ -61,7 +68,10 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
     assert [step for step, _ in resumed_log["eval/episodic_return"]] == [0, 500, 1000, 1500, 2000, 2500]
     loss = "losses/value_loss" if script in ON_POLICY else "losses/qf_loss"
     assert resumed_log[loss] == full_log[loss]  # no step logged twice or lost
-    full_actor, resumed_actor = final_actor(tmp_path / "runs" / "full", script), final_actor(tmp_path / "runs" / "killed", script)
+    full_actor, resumed_actor = (
+        final_actor(tmp_path / "runs" / "full", script),
+        final_actor(tmp_path / "runs" / "killed", script),
+    )
     for name in full_actor:
         assert torch.equal(full_actor[name], resumed_actor[name]), name
 
@@ -74,8 +84,20 @@ def finished_run(tmp_path_factory):
     def get(script):
         if script not in cache:
             cwd = tmp_path_factory.mktemp(script)
-            flags = ["--env-id", "Pendulum-v1", *cli_flags(script, total_timesteps=400, learning_starts=200, batch_size=32, eval_frequency=400, eval_episodes=1)]
-            result = subprocess.run(script_command(script, *flags, "--run-name", "done", "--checkpoint-frequency", "200"), cwd=cwd, capture_output=True, text=True, timeout=300)
+            flags = [
+                "--env-id",
+                "Pendulum-v1",
+                *cli_flags(
+                    script, total_timesteps=400, learning_starts=200, batch_size=32, eval_frequency=400, eval_episodes=1
+                ),
+            ]
+            result = subprocess.run(
+                script_command(script, *flags, "--run-name", "done", "--checkpoint-frequency", "200"),
+                cwd=cwd,
+                capture_output=True,
+                text=True,
+                timeout=300,
+            )
             assert result.returncode == 0, result.stderr
             cache[script] = cwd
         return cache[script]
@@ -86,7 +108,9 @@ def finished_run(tmp_path_factory):
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_resuming_a_finished_run_does_nothing(script, finished_run):
     cwd = finished_run(script)
-    result = subprocess.run(script_command(script, "--resume", "runs/done"), cwd=cwd, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        script_command(script, "--resume", "runs/done"), cwd=cwd, capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 0, result.stderr
     assert "had already finished its 400 steps" in result.stdout + result.stderr
 
@@ -130,14 +154,22 @@ def test_truncated_and_foreign_checkpoints_are_refused(script, finished_run, tmp
     torch.save({"script": f"{script}_continuous_action.py", "x": Exploit()}, tmp_path / "exploit" / "checkpoint.pt")
     cases["exploit"] = (None, "is not a readable checkpoint")
     for name, (_, message) in cases.items():
-        result = subprocess.run(script_command(script, "--resume", name), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        result = subprocess.run(
+            script_command(script, "--resume", name), cwd=tmp_path, capture_output=True, text=True, timeout=300
+        )
         assert message in one_line_error(result), name
     assert not (tmp_path / "pwned").exists()
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_resume_with_other_hyperparameters_is_refused(script, finished_run):
-    result = subprocess.run(script_command(script, "--resume", "runs/done", "--gamma", "0.5"), cwd=finished_run(script), capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        script_command(script, "--resume", "runs/done", "--gamma", "0.5"),
+        cwd=finished_run(script),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert "--gamma 0.5 (run: 0.99)" in one_line_error(result)
 
 
@@ -164,8 +196,18 @@ def test_bf16_off_keeps_float32(script):
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_non_finite_loss_stops_with_the_step_and_the_last_good_state(script, tmp_path):
-    flags = ["--env-id", "Pendulum-v1", *cli_flags(script, total_timesteps=600, learning_starts=100, batch_size=32, eval_frequency=600, eval_episodes=1)]
-    result = subprocess.run(script_command(script, *flags, critic_lr_flag(script), "1e30", "--run-name", "nan"), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    flags = [
+        "--env-id",
+        "Pendulum-v1",
+        *cli_flags(script, total_timesteps=600, learning_starts=100, batch_size=32, eval_frequency=600, eval_episodes=1),
+    ]
+    result = subprocess.run(
+        script_command(script, *flags, critic_lr_flag(script), "1e30", "--run-name", "nan"),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     line = one_line_error(result)
     assert "became non-finite at step" in line and "last_good_state.pt" in line
     state = torch.load(tmp_path / "runs" / "nan" / "last_good_state.pt", weights_only=True)
@@ -233,11 +275,15 @@ EXTRA_BAD_INPUTS = {
         (["--policy-lr", "-1"], "--policy-lr must be > 0"),
     ],
     "ppo": PPO_BAD_INPUTS,
-    "rnd": PPO_BAD_INPUTS + INTRINSIC_BAD_INPUTS + [
+    "rnd": PPO_BAD_INPUTS
+    + INTRINSIC_BAD_INPUTS
+    + [
         (["--update-proportion", "0"], "--update-proportion must be in (0, 1]"),
         (["--update-proportion", "1.5"], "--update-proportion must be in (0, 1]"),
     ],
-    "ebd": PPO_BAD_INPUTS + INTRINSIC_BAD_INPUTS + [
+    "ebd": PPO_BAD_INPUTS
+    + INTRINSIC_BAD_INPUTS
+    + [
         (["--num-models", "1"], "--num-models must be >= 2"),
     ],
     "oparl": [

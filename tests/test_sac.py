@@ -1,4 +1,5 @@
 """SAC's parts: the squashed Gaussian, the entropy-regularised target, alpha, deterministic evaluation."""
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -69,7 +70,13 @@ def test_target_subtracts_alpha_log_pi_from_the_min_and_bootstraps_unless_termin
     q = torch.tensor([[1.0, 5.0, -2.0], [3.0, 4.0, -3.0]])
     qf_target = lambda obs, actions: q  # noqa: E731
     log_pi = torch.tensor([-1.0, 2.0, 0.5])
-    batch = sac.Batch(torch.zeros(3, OBS_DIM), torch.zeros(3, 2), torch.zeros(3, OBS_DIM), torch.tensor([1.0, 0.0, 2.0]), torch.tensor([0.0, 0.0, 1.0]))
+    batch = sac.Batch(
+        torch.zeros(3, OBS_DIM),
+        torch.zeros(3, 2),
+        torch.zeros(3, OBS_DIM),
+        torch.tensor([1.0, 0.0, 2.0]),
+        torch.tensor([0.0, 0.0, 1.0]),
+    )
     y = sac.td_target(batch, FixedPolicy(log_pi), qf_target, torch.tensor(0.5), sac.Args(gamma=0.9))
     expected = batch.rewards + 0.9 * (1 - batch.terminations) * (torch.tensor([1.0, 4.0, -3.0]) - 0.5 * log_pi)
     torch.testing.assert_close(y, expected)
@@ -103,7 +110,17 @@ def test_actor_update_leaves_the_critic_alone_and_lowers_its_loss():
 
 def test_evaluation_acts_with_the_squashed_mean(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    result = sac.main(small_args(sac, env_id="Pendulum-v1", total_timesteps=400, learning_starts=200, eval_frequency=400, eval_episodes=2, run_name="run"))
+    result = sac.main(
+        small_args(
+            sac,
+            env_id="Pendulum-v1",
+            total_timesteps=400,
+            learning_starts=200,
+            eval_frequency=400,
+            eval_episodes=2,
+            run_name="run",
+        )
+    )
     actor, env = result["actor"], sac.make_env("Pendulum-v1", seed=101)
     by_hand = []
     for episode in range(2):
@@ -112,7 +129,9 @@ def test_evaluation_acts_with_the_squashed_mean(tmp_path, monkeypatch):
         while not done:
             with torch.no_grad():  # the actor stays on the run's device (a GPU where there is one)
                 mean, _ = actor(torch.as_tensor(obs, device=actor.action_scale.device))
-            obs, reward, terminated, truncated, _ = env.step((torch.tanh(mean) * actor.action_scale + actor.action_bias).cpu().numpy())
+            obs, reward, terminated, truncated, _ = env.step(
+                (torch.tanh(mean) * actor.action_scale + actor.action_bias).cpu().numpy()
+            )
             total, done = total + reward, terminated or truncated
         by_hand.append(total)
     assert result["eval_returns"][-1][1] == pytest.approx(np.mean(by_hand), abs=1e-6)
@@ -120,7 +139,18 @@ def test_evaluation_acts_with_the_squashed_mean(tmp_path, monkeypatch):
 
 def test_autotune_off_keeps_alpha_fixed(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    args = small_args(sac, env_id="Pendulum-v1", total_timesteps=400, learning_starts=200, eval_frequency=400, autotune=False, alpha=0.05, run_name="fixed")
+    args = small_args(
+        sac,
+        env_id="Pendulum-v1",
+        total_timesteps=400,
+        learning_starts=200,
+        eval_frequency=400,
+        autotune=False,
+        alpha=0.05,
+        run_name="fixed",
+    )
     assert sac.main(args)["alpha"] == pytest.approx(0.05)
-    args = small_args(sac, env_id="Pendulum-v1", total_timesteps=400, learning_starts=200, eval_frequency=400, run_name="tuned")
+    args = small_args(
+        sac, env_id="Pendulum-v1", total_timesteps=400, learning_starts=200, eval_frequency=400, run_name="tuned"
+    )
     assert sac.main(args)["alpha"] != pytest.approx(1.0)  # moved from its start value

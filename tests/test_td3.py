@@ -1,4 +1,5 @@
 """TD3's parts: replay buffer, critic ensemble, target value, updates, target networks."""
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -21,8 +22,7 @@ def filled_buffer(capacity=10, rows=7):
 def test_replay_buffer_samples_whole_transitions():
     torch.manual_seed(0)
     rb = filled_buffer()
-    rb.draw(500)
-    batch = rb.batch()
+    batch = rb.sample(500)
     i = batch.observations[:, 0]
     assert set(i.tolist()) == set(range(7))
     torch.testing.assert_close(batch.observations, i[:, None].expand(-1, OBS_DIM))
@@ -37,8 +37,7 @@ def test_replay_buffer_overwrites_the_oldest_rows_when_full():
     torch.manual_seed(0)
     rb = filled_buffer(capacity=5, rows=7)
     assert rb.size == 5 and rb.pos == 2
-    rb.draw(500)
-    assert set(rb.batch().observations[:, 0].tolist()) == {2, 3, 4, 5, 6}
+    assert set(rb.sample(500).observations[:, 0].tolist()) == {2, 3, 4, 5, 6}
 
 
 def test_q_ensemble_members_are_independent_mlps():
@@ -128,7 +127,9 @@ def make_agent():
     target_actor, qf_target = td3.Actor(OBS_DIM, SPACE), td3.QEnsemble(OBS_DIM, ACTION_DIM)
     q_optimizer = torch.optim.Adam(qf.parameters(), lr=1e-3)
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=1e-3)
-    batch = td3.Batch(torch.randn(32, OBS_DIM), torch.rand(32, ACTION_DIM), torch.randn(32, OBS_DIM), torch.randn(32), torch.zeros(32))
+    batch = td3.Batch(
+        torch.randn(32, OBS_DIM), torch.rand(32, ACTION_DIM), torch.randn(32, OBS_DIM), torch.randn(32), torch.zeros(32)
+    )
     return actor, qf, target_actor, qf_target, q_optimizer, actor_optimizer, batch
 
 
@@ -139,7 +140,9 @@ def snapshot(net):
 def test_critic_update_fits_the_target_and_leaves_actors_alone():
     actor, qf, target_actor, qf_target, q_optimizer, _, batch = make_agent()
     actor_before, target_before = snapshot(actor), snapshot(target_actor)
-    losses = [td3.update_critic(batch, qf, q_optimizer, target_actor, qf_target, td3.Args(policy_noise=0.0))[0] for _ in range(50)]
+    losses = [
+        td3.update_critic(batch, qf, q_optimizer, target_actor, qf_target, td3.Args(policy_noise=0.0))[0] for _ in range(50)
+    ]
     assert losses[-1] < 0.5 * losses[0]
     for before, net in [(actor_before, actor), (target_before, target_actor)]:
         for a, b in zip(before, net.parameters()):

@@ -1,4 +1,5 @@
 """The measuring tools run and report what they say, on tiny settings."""
+
 import os
 import shutil
 import subprocess
@@ -10,16 +11,33 @@ from conftest import REPO
 
 
 def tool(name, *flags, timeout=600):
-    return subprocess.run([sys.executable, os.path.join(REPO, "tools", name), *flags], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, os.path.join(REPO, "tools", name), *flags], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_throughput_reports_a_median_table_with_ratios():
-    result = tool("throughput.py", "td3 --batch-size 32", "td3 --batch-size 32 --bf16", "--env-id", "Pendulum-v1", "--learning-starts", "100", "--steps", "60", "--repeats", "1")
+    result = tool(
+        "throughput.py",
+        "td3 --batch-size 32",
+        "td3 --batch-size 32 --bf16",
+        "--env-id",
+        "Pendulum-v1",
+        "--learning-starts",
+        "100",
+        "--steps",
+        "60",
+        "--repeats",
+        "1",
+    )
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
     assert "| `td3 --batch-size 32 --bf16` |" in result.stdout
     assert next(line for line in lines if line.startswith("| `td3 --batch-size 32` |")).endswith("| 1.00x |")
-    assert [line.split(":")[0] for line in result.stderr.splitlines() if line.startswith("repeat")] == ["repeat 1/1 td3 --batch-size 32", "repeat 1/1 td3 --batch-size 32 --bf16"]
+    assert [line.split(":")[0] for line in result.stderr.splitlines() if line.startswith("repeat")] == [
+        "repeat 1/1 td3 --batch-size 32",
+        "repeat 1/1 td3 --batch-size 32 --bf16",
+    ]
 
 
 def test_throughput_runs_an_entry_prefixed_mkl_avx512_through_the_wrapper():
@@ -27,7 +45,17 @@ def test_throughput_runs_an_entry_prefixed_mkl_avx512_through_the_wrapper():
     import throughput
 
     prefix, ours = throughput.command_of("mkl-avx512:td3 --bf16")
-    assert prefix == ["bash", os.path.join(REPO, "tools", "mkl_avx512.sh"), sys.executable, os.path.join(REPO, "td3_continuous_action.py"), "--bf16"] and ours
+    assert (
+        prefix
+        == [
+            "bash",
+            os.path.join(REPO, "tools", "mkl_avx512.sh"),
+            sys.executable,
+            os.path.join(REPO, "td3_continuous_action.py"),
+            "--bf16",
+        ]
+        and ours
+    )
     assert throughput.command_of("mkl-avx512:other/script.py")[0][-2:] == [sys.executable, "other/script.py"]
     assert throughput.command_of("td3")[0] == [sys.executable, os.path.join(REPO, "td3_continuous_action.py")]
     result = tool("throughput.py", "mkl-avx512:")
@@ -43,7 +71,23 @@ def test_throughput_runs_a_script_and_imports_given_relative_to_the_caller(tmp_p
     script.write_text("import sys, marker\nlearning_starts: int = 0\n")
     monkeypatch.chdir(tmp_path)
     env = {**os.environ, "PYTHONPATH": "lib"}
-    result = subprocess.run([sys.executable, os.path.join(REPO, "tools", "throughput.py"), "other/script.py", "--steps", "10", "--learning-starts", "10", "--repeats", "1"], capture_output=True, text=True, env=env, timeout=120)
+    result = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(REPO, "tools", "throughput.py"),
+            "other/script.py",
+            "--steps",
+            "10",
+            "--learning-starts",
+            "10",
+            "--repeats",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert result.returncode == 0, result.stderr
     assert "| `other/script.py` |" in result.stdout
 
@@ -65,7 +109,20 @@ def test_levers_prints_one_row_per_lever():
 def test_profile_run_attributes_samples_to_phases():
     if shutil.which("py-spy") is None:
         pytest.skip("py-spy is not installed (pip install py-spy)")
-    result = tool("profile_run.py", "td3", "--env-id", "Pendulum-v1", "--learning-starts", "100", "--total-timesteps", "600", "--batch-size", "32", "--eval-episodes", "1")
+    result = tool(
+        "profile_run.py",
+        "td3",
+        "--env-id",
+        "Pendulum-v1",
+        "--learning-starts",
+        "100",
+        "--total-timesteps",
+        "600",
+        "--batch-size",
+        "32",
+        "--eval-episodes",
+        "1",
+    )
     if result.returncode != 0 and "Permission" in result.stderr:
         pytest.skip(f"py-spy may not sample here: {result.stderr.strip()}")
     assert result.returncode == 0, result.stderr
@@ -100,7 +157,9 @@ print(os.environ.get("LD_PRELOAD", "-"), worst, digest.hexdigest())
 def mkl_avx512(tmp_path, *command):
     env = {**os.environ, "MKL_AVX512_BUILD_DIR": str(tmp_path / "build"), "OMP_NUM_THREADS": "1"}
     env.pop("LD_PRELOAD", None)
-    return subprocess.run(["bash", os.path.join(REPO, "tools", "mkl_avx512.sh"), *command], capture_output=True, text=True, env=env, timeout=300)
+    return subprocess.run(
+        ["bash", os.path.join(REPO, "tools", "mkl_avx512.sh"), *command], capture_output=True, text=True, env=env, timeout=300
+    )
 
 
 def amd_with_avx512():
@@ -121,7 +180,9 @@ def test_mkl_avx512_runs_the_command_with_its_arguments_and_exit_status(tmp_path
 
 def test_mkl_avx512_changes_the_kernels_not_the_results(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "LD_PRELOAD"}
-    default = subprocess.run([sys.executable, "-c", MATMUL_PROBE], capture_output=True, text=True, env={**env, "OMP_NUM_THREADS": "1"}, timeout=300)
+    default = subprocess.run(
+        [sys.executable, "-c", MATMUL_PROBE], capture_output=True, text=True, env={**env, "OMP_NUM_THREADS": "1"}, timeout=300
+    )
     wrapped = mkl_avx512(tmp_path, sys.executable, "-c", MATMUL_PROBE)
     assert default.returncode == 0 and wrapped.returncode == 0, wrapped.stderr
     preload, worst, digest = wrapped.stdout.split()
@@ -155,7 +216,9 @@ def test_export_scalars_writes_any_tag_of_finished_runs(tmp_path):
 
     run_dir = tmp_path / "runs" / "r"
     writer = SummaryWriter(str(run_dir))
-    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n|exp_name|rnd_continuous_action|\n|env_id|Pendulum-v1|\n|seed|2|")
+    writer.add_text(
+        "hyperparameters", "|param|value|\n|-|-|\n|exp_name|rnd_continuous_action|\n|env_id|Pendulum-v1|\n|seed|2|"
+    )
     for step, value in [(0, 0.5), (2048, 0.25)]:
         writer.add_scalar("charts/intrinsic_reward", value, step)
     writer.close()
@@ -163,4 +226,8 @@ def test_export_scalars_writes_any_tag_of_finished_runs(tmp_path):
     out = tmp_path / "out.csv"
     result = tool("export_scalars.py", str(run_dir), "--tag", "charts/intrinsic_reward", "--out", str(out))
     assert result.returncode == 0, result.stderr
-    assert out.read_text().splitlines() == ["algo,env_id,seed,step,value", "rnd,Pendulum-v1,2,0,0.5", "rnd,Pendulum-v1,2,2048,0.25"]
+    assert out.read_text().splitlines() == [
+        "algo,env_id,seed,step,value",
+        "rnd,Pendulum-v1,2,0,0.5",
+        "rnd,Pendulum-v1,2,2048,0.25",
+    ]

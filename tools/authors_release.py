@@ -26,6 +26,7 @@ change leaves the algorithm untouched:
 Our scripts' evaluation schedule is the release's: 10 noiseless episodes of the pessimistic actor
 at step 0 and every 5000 steps, the last at the end.
 """
+
 import csv
 import glob
 import os
@@ -97,7 +98,9 @@ class DMCEnv:
 
     @staticmethod
     def _flatten(observation) -> np.ndarray:
-        return np.concatenate([np.array([v]) if np.isscalar(v) else np.asarray(v).ravel() for v in observation.values()]).astype(np.float64)
+        return np.concatenate(
+            [np.array([v]) if np.isscalar(v) else np.asarray(v).ravel() for v in observation.values()]
+        ).astype(np.float64)
 
     def seed(self, seed: int):
         self.action_space.seed(seed)
@@ -150,7 +153,18 @@ def run_release(args: Args, domain: str, task: str, run_dir: str):
     sys.modules["gym"] = gymnasium
     sys.modules["dmc2gym"] = dmc2gym_module()
     sys.path.insert(0, release_dir)
-    argv = ["--domain_name", domain, "--task_name", task, "--seed", str(args.seed), "--max_timesteps", str(args.total_timesteps), "--start_timesteps", str(args.learning_starts)]
+    argv = [
+        "--domain_name",
+        domain,
+        "--task_name",
+        task,
+        "--seed",
+        str(args.seed),
+        "--max_timesteps",
+        str(args.total_timesteps),
+        "--start_timesteps",
+        str(args.learning_starts),
+    ]
     sys.argv = [os.path.join(release_dir, "main.py"), *argv]
     os.chdir(run_dir)
     exec(compile(source, sys.argv[0], "exec"), {"__name__": "__main__", "__file__": sys.argv[0]})
@@ -161,7 +175,9 @@ def evaluations(run_dir: str, seed: int) -> list:
     `Timesteps N Evaluation over 10 episodes: R` per evaluation, step 0 included (its results/*.npy
     holds the same, but only once a run has passed 5000 steps)."""
     path = os.path.join(run_dir, f"seed={seed}_result.txt")
-    found = re.findall(r"^Timesteps (\d+) Evaluation over \d+ episodes: (-?[\d.]+)$", open(path).read() if os.path.exists(path) else "", re.M)
+    found = re.findall(
+        r"^Timesteps (\d+) Evaluation over \d+ episodes: (-?[\d.]+)$", open(path).read() if os.path.exists(path) else "", re.M
+    )
     if not found:
         fail(f"{path} holds no evaluation; main.py did not run to its first one")
     return [(int(step), float(value)) for step, value in found]
@@ -178,7 +194,9 @@ def main(argv=None):
     args = tyro.cli(Args, args=argv)
     for name in ("main.py", "TD3.py", "utils.py"):
         if not os.path.isfile(os.path.join(args.release_dir, name)):
-            fail(f"--release-dir {args.release_dir}: no {name} (a checkout of github.com/yydsok/OPARL, commit {RELEASE_COMMIT[:7]})")
+            fail(
+                f"--release-dir {args.release_dir}: no {name} (a checkout of github.com/yydsok/OPARL, commit {RELEASE_COMMIT[:7]})"
+            )
     if args.total_timesteps <= 0 or args.learning_starts < 0 or args.threads <= 0:
         fail("--total-timesteps and --threads must be > 0, --learning-starts >= 0")
     try:
@@ -186,17 +204,23 @@ def main(argv=None):
     except ImportError:
         fail("the release's main.py needs einops: pip install einops")
     domain, task = parse_env_id(args.env_id)
-    run_dir = os.path.abspath(args.run_dir or os.path.join("runs", f"{args.env_id.replace('/', '-')}__{ALGO}__{args.seed}__{args.total_timesteps}"))
+    run_dir = os.path.abspath(
+        args.run_dir or os.path.join("runs", f"{args.env_id.replace('/', '-')}__{ALGO}__{args.seed}__{args.total_timesteps}")
+    )
     csv_path = os.path.join(run_dir, "eval_series.csv")
     if os.path.isdir(os.path.join(run_dir, "results")):  # the release cannot resume: a run starts again from scratch
-        for stale in glob.glob(os.path.join(run_dir, "results", "*.npy")) + glob.glob(os.path.join(run_dir, "seed=*_result.txt")):
+        for stale in glob.glob(os.path.join(run_dir, "results", "*.npy")) + glob.glob(
+            os.path.join(run_dir, "seed=*_result.txt")
+        ):
             os.remove(stale)
     os.makedirs(run_dir, exist_ok=True)
     start = time.time()
     run_release(args, domain, task, run_dir)
     evaluated = evaluations(run_dir, args.seed)
     write_eval_series(csv_path, args.env_id, args.seed, evaluated)
-    print(f"{ALGO} {args.env_id} seed {args.seed}: {len(evaluated)} evaluations, final {evaluated[-1][1]:.1f} at step {evaluated[-1][0]}, {time.time() - start:.0f} s; {csv_path}")
+    print(
+        f"{ALGO} {args.env_id} seed {args.seed}: {len(evaluated)} evaluations, final {evaluated[-1][1]:.1f} at step {evaluated[-1][0]}, {time.time() - start:.0f} s; {csv_path}"
+    )
     return csv_path
 
 

@@ -6,6 +6,7 @@ quoted from a tag other than eval/episodic_return has a committed source, e.g.
 
 Runs are named as plot_results.py names them (the script, plus the flags that tell variants apart).
 """
+
 import argparse
 import csv
 import os
@@ -27,7 +28,9 @@ def main(argv=None):
         writer = csv.writer(f)
         writer.writerow(["algo", "env_id", "seed", "step", "value"])
         for run in sorted(runs, key=lambda r: (r.algo, r.env_id, r.seed)):
-            writer.writerows((run.algo, run.env_id, run.seed, int(step), f"{value:.6g}") for step, value in zip(run.steps, run.returns))
+            writer.writerows(
+                (run.algo, run.env_id, run.seed, int(step), f"{value:.6g}") for step, value in zip(run.steps, run.returns)
+            )
     print(f"{len(runs)} runs' {args.tag} -> {args.out}")
 
 

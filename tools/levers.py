@@ -7,6 +7,7 @@ taking the median over blocks. Shapes: Hopper-v4 (11-dim observations, 3-dim act
 
     python tools/levers.py [--repeats 7] [--calls 50]
 """
+
 import argparse
 import os
 import statistics
@@ -84,7 +85,12 @@ def main(argv=None):
         x = F.relu(torch.baddbmm(b2, x, w2))
         torch.baddbmm(b3.unsqueeze(-1), x, w3.transpose(1, 2)).squeeze(-1).sum().backward()
 
-    row("critic output layer: baddbmm with one column -> multiply-and-sum", 1, matmul_head, lambda: ensemble(obs, actions).sum().backward())
+    row(
+        "critic output layer: baddbmm with one column -> multiply-and-sum",
+        1,
+        matmul_head,
+        lambda: ensemble(obs, actions).sum().backward(),
+    )
 
     row(
         "critic forward+backward, 2 critics: weights indexed with a full slice -> used as they are",
@@ -99,15 +105,25 @@ def main(argv=None):
         loss.backward()
         ensemble.zero_grad(set_to_none=True)
 
-    row("TD3 actor loss: gradients into the critic's weights too -> into the actions only", 0.5, lambda: actor_loss(False), lambda: actor_loss(True))
+    row(
+        "TD3 actor loss: gradients into the critic's weights too -> into the actions only",
+        0.5,
+        lambda: actor_loss(False),
+        lambda: actor_loss(True),
+    )
 
     ensemble5 = oparl.QEnsemble(OBS, ACT, num_q=5)
 
     def two_passes():
-        (-ensemble5(obs, actor(obs), detach_params=True).min(0).values.mean() - ensemble5(obs, optimistic(obs), detach_params=True).max(0).values.mean()).backward()
+        (
+            -ensemble5(obs, actor(obs), detach_params=True).min(0).values.mean()
+            - ensemble5(obs, optimistic(obs), detach_params=True).max(0).values.mean()
+        ).backward()
 
     def one_pass():
-        q_pes, q_opt = ensemble5(torch.cat([obs, obs]), torch.cat([actor(obs), optimistic(obs)]), detach_params=True).chunk(2, dim=1)
+        q_pes, q_opt = ensemble5(torch.cat([obs, obs]), torch.cat([actor(obs), optimistic(obs)]), detach_params=True).chunk(
+            2, dim=1
+        )
         (-q_pes.min(0).values.mean() - q_opt.max(0).values.mean()).backward()
 
     row("OPARL's two actor losses: two ensemble passes -> one pass on both batches", 0.5, two_passes, one_pass)
@@ -123,14 +139,25 @@ def main(argv=None):
             for param, target_param in zip(net.parameters(), target.parameters()):
                 target_param.data.copy_(0.005 * param.data + (1 - 0.005) * target_param.data)
 
-    row("TD3 target networks: a loop over parameters -> one _foreach_lerp_", 0.5, loop_update, lambda: td3.soft_update(targets, nets, 0.005))
+    row(
+        "TD3 target networks: a loop over parameters -> one _foreach_lerp_",
+        0.5,
+        loop_update,
+        lambda: td3.soft_update(targets, nets, 0.005),
+    )
 
     for n in (2, 5):
         critics = td3.QEnsemble(OBS, ACT, num_q=n)
         ((critics(obs, actions) - y) ** 2).mean().backward()
         default_adam = torch.optim.Adam(critics.parameters(), lr=3e-4)
         fused_adam = torch.optim.Adam(critics.parameters(), lr=3e-4, fused=True)
-        row(f"Adam step on {n} critics: default (foreach) -> fused", 1, default_adam.step, fused_adam.step, "changes the float rounding slightly")
+        row(
+            f"Adam step on {n} critics: default (foreach) -> fused",
+            1,
+            default_adam.step,
+            fused_adam.step,
+            "changes the float rounding slightly",
+        )
 
     capacity = 100_000
     rb = td3.ReplayBuffer(capacity, OBS, ACT, torch.device("cpu"))
@@ -143,8 +170,7 @@ def main(argv=None):
         return [torch.as_tensor(f[idx]) for f in numpy_fields]
 
     def tensor_sample():  # ours: draw the rows, one gather
-        rb.draw(BATCH)
-        return rb.batch()
+        return rb.sample(BATCH)
 
     row("replay sample: numpy arrays per field -> one gather from one tensor", 1, numpy_sample, tensor_sample)
 
@@ -153,8 +179,12 @@ def main(argv=None):
     for dtype in (torch.float32, torch.bfloat16):
         x, w = a.to(dtype), b.to(dtype)
         rates[dtype] = 2 * 256**3 / statistics.median(timed(lambda: x @ w, 200) for _ in range(args.repeats)) / 1e6
-    print(f"\n{torch.get_num_threads()} thread(s), batch {BATCH}, Hopper-v4 shapes, median of {args.repeats} blocks of {args.calls} calls")
-    print(f"a 256x256x256 matmul runs at {rates[torch.float32]:.0f} GFLOP/s in float32, {rates[torch.bfloat16]:.0f} in bfloat16\n")
+    print(
+        f"\n{torch.get_num_threads()} thread(s), batch {BATCH}, Hopper-v4 shapes, median of {args.repeats} blocks of {args.calls} calls"
+    )
+    print(
+        f"a 256x256x256 matmul runs at {rates[torch.float32]:.0f} GFLOP/s in float32, {rates[torch.bfloat16]:.0f} in bfloat16\n"
+    )
     print("| lever | before (ms) | after (ms) | saved per training step (ms) | note |")
     print("|---|---|---|---|---|")
     for name, before, after, saved, note in rows:

@@ -1,11 +1,12 @@
 """Memory and checkpoint costs, the figures quoted in docs/reliability.md.
 
-    python tools/memory.py rss td3 --env-id Hopper-v4 --total-timesteps 50000 --checkpoint-frequency 10000
-        runs the script (one torch thread) and samples its resident memory every 2 s
-    python tools/memory.py checkpoint [--script oparl] [--rows 100000]
-        size, write and load time of a checkpoint whose replay buffer is full, on Hopper-v4 and
-        dm_control/walker-walk-v0 shapes, written by the script's own write_checkpoint
+python tools/memory.py rss td3 --env-id Hopper-v4 --total-timesteps 50000 --checkpoint-frequency 10000
+    runs the script (one torch thread) and samples its resident memory every 2 s
+python tools/memory.py checkpoint [--script oparl] [--rows 100000]
+    size, write and load time of a checkpoint whose replay buffer is full, on Hopper-v4 and
+    dm_control/walker-walk-v0 shapes, written by the script's own write_checkpoint
 """
+
 import argparse
 import importlib
 import os
@@ -36,7 +37,9 @@ def rss(script: str, flags: list):
         if proc.returncode != 0:
             sys.exit(f"error: the run failed: {proc.stderr.read().strip().splitlines()[-1]}")
     settled = [mb for t, mb in samples if t >= 30] or [mb for _, mb in samples]
-    print(f"{script} {' '.join(flags)}: {time.time() - start:.0f} s; resident memory after the first 30 s: {min(settled):.0f}-{max(settled):.0f} MB over {len(settled)} samples; peak {max(mb for _, mb in samples):.0f} MB")
+    print(
+        f"{script} {' '.join(flags)}: {time.time() - start:.0f} s; resident memory after the first 30 s: {min(settled):.0f}-{max(settled):.0f} MB over {len(settled)} samples; peak {max(mb for _, mb in samples):.0f} MB"
+    )
 
 
 def checkpoint(script: str, rows: int):
@@ -58,7 +61,10 @@ def checkpoint(script: str, rows: int):
         rb = module.ReplayBuffer(rows, obs_dim, action_dim, torch.device("cpu"))
         rb.storage.normal_()
         rb.size = rows
-        state = {"nets": {k: v.state_dict() for k, v in nets.items()}, "optimizers": {k: v.state_dict() for k, v in optimizers.items()}}
+        state = {
+            "nets": {k: v.state_dict() for k, v in nets.items()},
+            "optimizers": {k: v.state_dict() for k, v in optimizers.items()},
+        }
         with tempfile.TemporaryDirectory() as workdir:
             path, writes = os.path.join(workdir, "checkpoint.pt"), []
             for _ in range(5):
@@ -69,7 +75,9 @@ def checkpoint(script: str, rows: int):
             torch.load(path, weights_only=True)
             load = time.perf_counter() - start
             size = os.path.getsize(path) / 2**20
-        print(f"{script}, {env_id} shapes, {rows} transitions: {size:.1f} MiB (buffer {rb.storage.numel() * 4 / 2**20:.1f} MiB), write {1e3 * statistics.median(writes):.0f} ms (median of 5), load {1e3 * load:.0f} ms")
+        print(
+            f"{script}, {env_id} shapes, {rows} transitions: {size:.1f} MiB (buffer {rb.storage.numel() * 4 / 2**20:.1f} MiB), write {1e3 * statistics.median(writes):.0f} ms (median of 5), load {1e3 * load:.0f} ms"
+        )
 
 
 def main(argv=None):

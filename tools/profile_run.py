@@ -11,6 +11,7 @@ evaluation, logging, and start-up. For example:
 Everything after the script's short name is passed to it; the run goes to a throw-away folder, with
 one torch thread unless OMP_NUM_THREADS says otherwise.
 """
+
 import collections
 import os
 import shutil
@@ -36,7 +37,16 @@ PHASES = [
 ]
 # what main calls directly to pick an action
 ACTING = {"Module._wrapped_call_impl", "optimistic_action", "Actor.get_action", "Box.sample", "_clip", "Tensor.numpy"}
-STARTUP = {"Optimizer.__init__", "Adam.__init__", "make_env", "SummaryWriter.__init__", "Module.to", "QEnsemble.__init__", "Actor.__init__", "ReplayBuffer.__init__"}
+STARTUP = {
+    "Optimizer.__init__",
+    "Adam.__init__",
+    "make_env",
+    "SummaryWriter.__init__",
+    "Module.to",
+    "QEnsemble.__init__",
+    "Actor.__init__",
+    "ReplayBuffer.__init__",
+}
 
 
 def phase_of(stack: list) -> str:
@@ -68,10 +78,27 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as workdir:
         raw = os.path.join(workdir, "profile.txt")
         env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
-        cmd = ["py-spy", "record", "--format", "raw", "--rate", "200", "--output", raw, "--", sys.executable, script, *argv[1:], "--run-name", "profile"]
+        cmd = [
+            "py-spy",
+            "record",
+            "--format",
+            "raw",
+            "--rate",
+            "200",
+            "--output",
+            raw,
+            "--",
+            sys.executable,
+            script,
+            *argv[1:],
+            "--run-name",
+            "profile",
+        ]
         result = subprocess.run(cmd, cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         if result.returncode != 0:
-            sys.exit(f"error: the profiled run failed: {result.stderr.strip().splitlines()[-1] if result.stderr.strip() else result.returncode}")
+            sys.exit(
+                f"error: the profiled run failed: {result.stderr.strip().splitlines()[-1] if result.stderr.strip() else result.returncode}"
+            )
         samples = collections.Counter()
         with open(raw) as f:
             for line in f:
@@ -85,7 +112,11 @@ def main(argv=None):
     print(f"{argv[0]} {' '.join(argv[1:])}: {total} samples at 200/s")
     print("| phase | share of all samples | share of the training loop |")
     print("|---|---|---|")
-    for phase in [p for p, _ in PHASES] + ["acting (actor forward, noise)", "rest of the loop (Python, conversions, progress bar)", "start-up and imports"]:
+    for phase in [p for p, _ in PHASES] + [
+        "acting (actor forward, noise)",
+        "rest of the loop (Python, conversions, progress bar)",
+        "start-up and imports",
+    ]:
         if samples[phase]:
             in_loop = "" if phase in ("start-up and imports", "evaluation") else f"{100 * samples[phase] / training:.1f}%"
             print(f"| {phase} | {100 * samples[phase] / total:.1f}% | {in_loop} |")

@@ -6,6 +6,7 @@ normalises tasks without a common scale (MuJoCo) from the random policy (0) to t
 Episodes run through the scripts' own environment layer (td3_continuous_action.make_env), with actions
 drawn uniformly from the action space, seeded, so the file is reproducible.
 """
+
 import argparse
 import csv
 import os

@@ -18,6 +18,7 @@ Every entry gets `--env-id E --total-timesteps N --learning-starts L --seed 1 --
 with `--cuda`, no `--no-cuda`: the entries run on the GPU, e.g. "td3 --cudagraphs");
 our own scripts also get a single evaluation episode at the end and a throw-away run folder.
 """
+
 import argparse
 import os
 import platform
@@ -39,7 +40,10 @@ def command_of(entry: str) -> tuple[list, bool]:
     if entry.startswith(MKL_AVX512):
         wrapper, entry = ["bash", os.path.join(REPO, "tools", "mkl_avx512.sh")], entry.removeprefix(MKL_AVX512)
     # the runs start in a scratch folder: paths given relative to here must not change meaning there
-    words = [os.path.abspath(w) if not os.path.isabs(w) and os.path.sep in w and os.path.exists(w) else w for w in shlex.split(entry)]
+    words = [
+        os.path.abspath(w) if not os.path.isabs(w) and os.path.sep in w and os.path.exists(w) else w
+        for w in shlex.split(entry)
+    ]
     if not words:
         sys.exit(f"error: an entry names no script or command (got {MKL_AVX512 if wrapper else ''}{entry!r})")
     if words[0] in OURS:
@@ -58,7 +62,9 @@ def has_random_phase(prefix: list) -> bool:
         return "learning_starts:" in f.read()
 
 
-def timed_run(entry: str, env_id: str, steps: int, learning_starts: int, threads: int, workdir: str, cuda: bool = False) -> float:
+def timed_run(
+    entry: str, env_id: str, steps: int, learning_starts: int, threads: int, workdir: str, cuda: bool = False
+) -> float:
     prefix, ours = command_of(entry)
     flags = ["--env-id", env_id, "--total-timesteps", str(steps), "--seed", "1"] + ([] if cuda else ["--no-cuda"])
     if has_random_phase(prefix):
@@ -72,7 +78,9 @@ def timed_run(entry: str, env_id: str, steps: int, learning_starts: int, threads
     result = subprocess.run(prefix + flags, cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     elapsed = time.perf_counter() - start
     if result.returncode != 0:
-        sys.exit(f"error: {entry!r} failed ({result.returncode}): {result.stderr.strip().splitlines()[-1] if result.stderr.strip() else 'no output'}")
+        sys.exit(
+            f"error: {entry!r} failed ({result.returncode}): {result.stderr.strip().splitlines()[-1] if result.stderr.strip() else 'no output'}"
+        )
     return elapsed
 
 
@@ -92,7 +100,11 @@ def gpu_name() -> str:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("entries", nargs="+", help="a short name (td3, sac, oparl, redq, ppo, rnd, ebd) | path/to/script.py | 'command prefix', each with optional flags")
+    parser.add_argument(
+        "entries",
+        nargs="+",
+        help="a short name (td3, sac, oparl, redq, ppo, rnd, ebd) | path/to/script.py | 'command prefix', each with optional flags",
+    )
     parser.add_argument("--env-id", default="Hopper-v4")
     parser.add_argument("--learning-starts", type=int, default=1000, help="L: random steps before training")
     parser.add_argument("--steps", type=int, default=2000, help="T: training steps timed")
@@ -101,7 +113,12 @@ def main(argv=None):
     parser.add_argument("--baseline", default=None, help="the entry the ratios are relative to (default: the first)")
     parser.add_argument("--cuda", action="store_true", help="let every entry use the GPU (no --no-cuda)")
     args = parser.parse_args(argv)
-    for name, value in [("--steps", args.steps), ("--repeats", args.repeats), ("--threads", args.threads), ("--learning-starts", args.learning_starts)]:
+    for name, value in [
+        ("--steps", args.steps),
+        ("--repeats", args.repeats),
+        ("--threads", args.threads),
+        ("--learning-starts", args.learning_starts),
+    ]:
         if value <= 0:
             parser.error(f"{name} must be > 0, got {value}")
     baseline = args.baseline or args.entries[0]
@@ -114,14 +131,26 @@ def main(argv=None):
             timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda)
         for repeat in range(args.repeats):
             for entry in args.entries:
-                short = timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda)
-                long = timed_run(entry, args.env_id, args.learning_starts + args.steps, args.learning_starts, args.threads, workdir, args.cuda)
+                short = timed_run(
+                    entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda
+                )
+                long = timed_run(
+                    entry,
+                    args.env_id,
+                    args.learning_starts + args.steps,
+                    args.learning_starts,
+                    args.threads,
+                    workdir,
+                    args.cuda,
+                )
                 sps[entry].append(args.steps / (long - short))
                 print(f"repeat {repeat + 1}/{args.repeats} {entry}: {sps[entry][-1]:.1f} steps/s", file=sys.stderr, flush=True)
 
     reference = statistics.median(sps[baseline])
     device = gpu_name() if args.cuda else cpu_name()
-    print(f"\n{args.env_id}, {args.threads} thread(s), {args.steps} training steps after {args.learning_starts} random ones, median of {args.repeats}; {device}\n")
+    print(
+        f"\n{args.env_id}, {args.threads} thread(s), {args.steps} training steps after {args.learning_starts} random ones, median of {args.repeats}; {device}\n"
+    )
     print(f"| entry | steps/s (median) | range | vs `{baseline}` |")
     print("|---|---|---|---|")
     for entry, values in sps.items():
