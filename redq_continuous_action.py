@@ -2,7 +2,7 @@
 # a baseline of the OPARL paper, as a copy of sac_continuous_action.py: `diff sac_continuous_action.py
 # redq_continuous_action.py` shows what REDQ changes: an ensemble of 10 critics, a target that takes
 # the min over a random subset of 2 of them, 20 critic updates per environment step, and an actor
-# trained on the mean of all critics. At that update-to-data ratio a step costs ~20 SAC steps.
+# trained on the mean of all critics. At that update-to-data ratio a step costs ~40 SAC steps (docs/speed.md).
 import dataclasses
 import difflib
 import functools
@@ -80,7 +80,9 @@ class Args:
     alpha: float = 0.2
     """Entropy regularization coefficient (its start value is 1 when --autotune is on)"""
     autotune: bool = True
-    """automatic tuning of the entropy coefficient, towards an entropy of -|A|"""
+    """automatic tuning of the entropy coefficient, towards an entropy of --target-entropy"""
+    target_entropy: Optional[float] = None
+    """the entropy --autotune steers towards (default: REDQ's release's per-task value where it has one, else -|A|)"""
 
     # Evaluation (the metric the paper reports)
     eval_frequency: int = 5000
@@ -124,6 +126,8 @@ class QEnsemble(nn.Module):
 
 LOG_STD_MAX = 2
 LOG_STD_MIN = -5
+# REDQ's release (redq/algos/core.py, from MBPO) steers alpha towards these entropies on its MuJoCo tasks
+RELEASE_TARGET_ENTROPY = {"Hopper-v4": -1.0, "HalfCheetah-v4": -3.0, "Walker2d-v4": -3.0, "Ant-v4": -4.0, "Humanoid-v4": -2.0}
 
 
 class Actor(nn.Module):
@@ -313,7 +317,9 @@ def main(args: Args):
     actor_optimizer = adam(actor.parameters(), lr=args.policy_lr)
 
     # Automatic entropy tuning
-    target_entropy = -float(action_dim)
+    target_entropy = args.target_entropy
+    if target_entropy is None:  # REDQ's release's value on its tasks, -|A| (as SAC) on the others
+        target_entropy = RELEASE_TARGET_ENTROPY.get(args.env_id, -float(action_dim))
     log_alpha = torch.zeros(1, requires_grad=True, device=device)  # alpha starts at 1, as in CleanRL
     a_optimizer = adam([log_alpha], lr=args.q_lr)
     alpha = log_alpha.detach().exp() if args.autotune else torch.tensor(args.alpha, device=device)

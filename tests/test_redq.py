@@ -79,3 +79,22 @@ def test_utd_ratio_critic_updates_and_one_actor_update_per_step(tmp_path, monkey
     actor_steps = {int(s["step"]) for s in result["actor_optimizer"].state.values()}
     assert critic_steps == {30 * 3} and actor_steps == {30}
     assert result["qf"].w1.shape[0] == 4
+
+
+@pytest.mark.parametrize(
+    "env_id, flags, expected",
+    [
+        ("Hopper-v4", {}, -1.0),  # REDQ's release (from MBPO)
+        ("Ant-v4", {}, -4.0),
+        ("Pendulum-v1", {}, -1.0),  # -|A|, as SAC, where the release has no value
+        ("dm_control/cartpole-swingup-v0", {}, -1.0),
+        ("Hopper-v4", {"target_entropy": -3.0}, -3.0),  # the flag wins
+    ],
+)
+def test_default_target_entropy_is_the_releases_per_task_value(env_id, flags, expected, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    seen = []
+    real_update = redq.update_alpha
+    monkeypatch.setattr(redq, "update_alpha", lambda *a: seen.append(a[-1]) or real_update(*a))
+    redq.main(small_args(redq, env_id=env_id, total_timesteps=70, learning_starts=64, eval_frequency=70, **flags))
+    assert seen and set(seen) == {expected}
