@@ -391,7 +391,8 @@ def update_policy(rollout, advantages, returns, int_returns, model_data, agent, 
             check_finite(loss, "loss")
             optimizer.zero_grad()
             loss.backward()
-            nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], args.max_grad_norm)
+            nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+            nn.utils.clip_grad_norm_(forward_models.parameters(), args.max_grad_norm)  # apart, so as not to shrink PPO's step
             optimizer.step()
             clipfracs.append(stats["clipfrac"])
         if args.target_kl is not None and stats["approx_kl"] > args.target_kl:

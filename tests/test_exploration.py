@@ -216,3 +216,31 @@ def test_running_mean_std_batch_update_matches_one_at_a_time(module):
     np.testing.assert_allclose(batched.mean, single.mean, rtol=1e-10)
     np.testing.assert_allclose(batched.var, single.var, rtol=1e-10)
     assert batched.count == pytest.approx(single.count)
+
+
+@pytest.mark.parametrize("model_scale", [1e4])
+def test_ebd_clips_the_agent_apart_from_the_forward_models(monkeypatch, model_scale):
+    """However large the models' gradient, the agent takes the step PPO alone would: the two gradient norms are
+    clipped apart (as in the EBD release), not as one global norm."""
+    real_loss = ebd.forward_model_loss
+    args = ebd.Args(num_steps=64, num_minibatches=1, update_epochs=1, num_models=3, max_grad_norm=0.5)
+    torch.manual_seed(0)
+    rollout = ebd.Rollout(64, 2, 1, torch.device("cpu"))
+    for tensor in vars(rollout).values():
+        tensor.normal_()
+    agent, models = ebd.Agent(2, 1), ebd.ForwardModels(3, 2, 1)
+    data = (torch.randn(64, 3), torch.randn(64, 2))
+    advantages, returns = torch.randn(64), torch.randn(64)
+    agents = {}
+    for scale in (1.0, model_scale):
+        monkeypatch.setattr(ebd, "forward_model_loss", lambda *a, s=scale: s * real_loss(*a))
+        run_agent, run_models = copy.deepcopy(agent), copy.deepcopy(models)
+        optimizer = torch.optim.SGD(
+            [*run_agent.parameters(), *run_models.parameters()], lr=0.1
+        )  # steps as large as the gradients
+        torch.manual_seed(1)  # the same minibatch order and bootstrap samples
+        ebd.update_policy(rollout, advantages, returns, returns, data, run_agent, run_models, optimizer, args)
+        agents[scale] = run_agent
+    assert any(not torch.equal(p, q) for p, q in zip(agent.parameters(), agents[1.0].parameters()))  # the agent moved
+    for (name, p), q in zip(agents[1.0].named_parameters(), agents[model_scale].parameters()):
+        torch.testing.assert_close(q, p, msg=name)
