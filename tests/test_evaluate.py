@@ -47,9 +47,9 @@ def test_names_are_inferred_from_the_run_folder():
     assert evaluate.infer_env_id(os.path.join("models", "model.pt")) is None
 
 
-def run_cli(*flags, cwd):
+def run_cli(*flags, cwd, env=None):
     return subprocess.run(
-        [sys.executable, os.path.join(REPO, "tools", "evaluate.py"), *flags], capture_output=True, text=True, cwd=cwd
+        [sys.executable, os.path.join(REPO, "tools", "evaluate.py"), *flags], capture_output=True, text=True, cwd=cwd, env=env
     )
 
 
@@ -58,22 +58,7 @@ def test_capture_video_records_the_first_episode(tmp_path, monkeypatch):
         pytest.skip(f"no headless OpenGL here: MUJOCO_GL=egl could not render {VIDEO_ENV} (install libegl1 / libosmesa6)")
     model, _ = train_and_save("td3", tmp_path, monkeypatch, env_id=VIDEO_ENV)
     env = {**os.environ, "MUJOCO_GL": "egl"}
-    done = subprocess.run(
-        [
-            sys.executable,
-            os.path.join(REPO, "tools", "evaluate.py"),
-            model,
-            "--episodes",
-            "2",
-            "--capture-video",
-            "--video-folder",
-            "v",
-        ],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        env=env,
-    )
+    done = run_cli(model, "--episodes", "2", "--capture-video", "--video-folder", "v", cwd=tmp_path, env=env)
     assert done.returncode == 0, done.stderr
     assert [name for name in os.listdir(tmp_path / "v") if name.endswith(".mp4")] == ["rl-video-episode-0.mp4"]
 

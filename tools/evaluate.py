@@ -22,7 +22,6 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the training scripts
 ALGOS = ("oparl", "td3", "sac", "redq", "ppo", "rnd", "ebd")
-ON_POLICY = ("ppo", "rnd", "ebd")
 
 
 def fail(message: str):
@@ -55,7 +54,7 @@ def load_policy(script, algo: str, model_path: str, env):
         fail(f"{model_path!r} holds no 'actor': not a model written by --save-model")
     obs_dim = int(np.prod(env.observation_space.shape))
     try:
-        if algo in ON_POLICY:
+        if hasattr(script, "Normalizer"):  # PPO, RND, EBD: an agent and its observation statistics
             agent = script.Agent(obs_dim, int(np.prod(env.action_space.shape)))
             agent.load_state_dict(saved["actor"])
             normalizer = script.Normalizer(obs_dim, gamma=0.99)  # gamma only matters for rewards, not used here
