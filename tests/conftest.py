@@ -16,7 +16,8 @@ OFF_POLICY = ["td3", "oparl", "sac", "redq"]  # the scripts with a replay buffer
 ON_POLICY = ["ppo", "rnd", "ebd"]  # PPO and the exploration methods built on it
 # what keeps each script's test runs short, beyond fewer steps
 SHORT_ROLLOUTS = {"num_steps": 256, "num_minibatches": 4, "update_epochs": 2}
-QUICK = {"redq": {"utd_ratio": 2}, **{script: SHORT_ROLLOUTS for script in ON_POLICY}}
+# REDQ: 2 critic updates per step and 4 critics (a random 2 of them in each target) instead of 20 and 10
+QUICK = {"redq": {"utd_ratio": 2, "num_q": 4}, **{script: SHORT_ROLLOUTS for script in ON_POLICY}}
 # settings that only the off-policy scripts have; dropped for the others
 OFF_POLICY_ONLY = {"learning_starts", "batch_size"}
 
