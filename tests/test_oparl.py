@@ -28,6 +28,42 @@ def test_td_target_takes_the_min_over_all_members():
     torch.testing.assert_close(y, batch.rewards + 0.99 * (1 - batch.terminations) * q.min(0).values)
 
 
+def test_td_target_noise_is_clipped_scaled_and_kept_in_bounds():
+    """The target policy smoothing of TD3 in OPARL's own target: noise ~ N(0, policy_noise), clipped to
+    +-noise_clip, times the action scale, added to the target actor's action and clamped to the bounds."""
+    torch.manual_seed(0)
+    actor = oparl.Actor(OBS_DIM, SPACE)  # bounds +-2: action scale 2
+    with torch.no_grad():
+        actor.fc_mu.weight.zero_()
+        actor.fc_mu.bias.copy_(torch.tensor([0.0, 100.0]))  # acts [0, 2]: the middle, and the upper bound
+    seen = {}
+
+    def ensemble(obs, actions):
+        seen["actions"] = actions
+        return torch.zeros(5, len(actions))
+
+    args = oparl.Args(policy_noise=10.0, noise_clip=0.5)
+    oparl.td_target(batch_of(4096, torch.zeros(4096), torch.zeros(4096)), actor, ensemble, args)
+    first, second = seen["actions"][:, 0], seen["actions"][:, 1]
+    assert first.abs().max() == pytest.approx(1.0)  # clip 0.5 times scale 2
+    assert first.std() > 0.5  # noisy, not constant
+    assert second.max() == 2.0 and second.min() == pytest.approx(1.0)  # clamped at the bound, noise below it
+
+
+def test_q_ensemble_members_are_independent_mlps_with_the_styles_activation():
+    torch.manual_seed(0)
+    for style in ("release", "td3"):
+        qf = oparl.QEnsemble(OBS_DIM, ACTION_DIM, num_q=3, style=style)
+        obs, actions = torch.randn(8, OBS_DIM), torch.randn(8, ACTION_DIM)
+        q = qf(obs, actions)
+        assert q.shape == (3, 8)
+        for k in range(3):
+            x = qf.activation(torch.cat([obs, actions], 1) @ qf.w1[k] + qf.b1[k, 0])
+            x = qf.activation(x @ qf.w2[k] + qf.b2[k, 0])
+            torch.testing.assert_close(q[k], x @ qf.w3[k, 0] + qf.b3[k])
+        assert not torch.equal(qf.w1[0], qf.w1[1])
+
+
 def make_actors():
     torch.manual_seed(1)
     pessimistic, optimistic = oparl.Actor(OBS_DIM, SPACE), oparl.Actor(OBS_DIM, SPACE)

@@ -6,15 +6,28 @@ import signal
 import subprocess
 import time
 
+import numpy as np
 import pytest
 import torch
 
 from conftest import OFF_POLICY, ON_POLICY, SCRIPTS, cli_flags, critic_lr_flag, load, needs_cuda, scalars, script_command
 
 
-def short(script):
-    """1500 steps, learning from step 500, where the killed run writes its first checkpoint (killed up to 1.5 s later)."""
-    return cli_flags(script, total_timesteps=1500, learning_starts=500, batch_size=64, eval_frequency=500, eval_episodes=1)
+# (total steps, first step of learning, checkpoint frequency) of the kill-and-resume runs, by the phase in which the
+# killed run's checkpoint falls. "learning": at the first episode end from step 500, where learning starts. "random":
+# the first episode end from step 1000 (Hopper's random episodes end within ~100 steps), before learning starts at
+# 1200; the resumed run then acts at random from the action space's restored generator for its first steps.
+PHASES = {"learning": (1500, 500, 500), "random": (2000, 1200, 1000)}
+# the on-policy scripts run ~1000 steps/s: a longer run keeps the kill (up to 1 s after the checkpoint) before its end
+ON_POLICY_STEPS = 3000
+
+
+def short(script, phase="learning"):
+    total, learning_starts, _ = PHASES[phase]
+    total = ON_POLICY_STEPS if script in ON_POLICY else total
+    return cli_flags(
+        script, total_timesteps=total, learning_starts=learning_starts, batch_size=64, eval_frequency=500, eval_episodes=1
+    )
 
 
 def start(script, cwd, *flags):
@@ -26,34 +39,48 @@ def final_actor(run_dir, script):
     return torch.load(os.path.join(run_dir, f"{script}_continuous_action.cleanrl_model"), weights_only=True)["actor"]
 
 
-# OPARL is resumed on a MuJoCo and a DMC task; the others on one each
+# OPARL is resumed on a MuJoCo and a DMC task; the others on one each; every off-policy script also from a
+# checkpoint taken in its random phase (on Hopper, whose random episodes are short)
 KILL_CASES = [
-    ("td3", "Hopper-v4"),
-    ("sac", "dm_control/cartpole-swingup-v0"),
-    ("oparl", "Hopper-v4"),
-    ("oparl", "dm_control/cartpole-swingup-v0"),
-    ("redq", "dm_control/cartpole-swingup-v0"),
-    ("ppo", "Hopper-v4"),
-    ("rnd", "Hopper-v4"),
-    ("ebd", "dm_control/cartpole-swingup-v0"),
+    ("td3", "Hopper-v4", "learning"),
+    ("sac", "dm_control/cartpole-swingup-v0", "learning"),
+    ("oparl", "Hopper-v4", "learning"),
+    ("oparl", "dm_control/cartpole-swingup-v0", "learning"),
+    ("redq", "dm_control/cartpole-swingup-v0", "learning"),
+    ("ppo", "Hopper-v4", "learning"),
+    ("rnd", "Hopper-v4", "learning"),
+    ("ebd", "dm_control/cartpole-swingup-v0", "learning"),
+    *[(script, "Hopper-v4", "random") for script in OFF_POLICY],
 ]
 # the recorded updates of --cudagraphs resume exactly too (the graphs are recorded anew after a resume)
-GRAPH_KILL_CASES = [pytest.param(s, "Hopper-v4", "--cudagraphs", marks=needs_cuda, id=f"{s}-cudagraphs") for s in OFF_POLICY]
+GRAPH_KILL_CASES = [
+    pytest.param(s, "Hopper-v4", "learning", "--cudagraphs", marks=needs_cuda, id=f"{s}-cudagraphs") for s in OFF_POLICY
+]
 
 
-@pytest.mark.parametrize("script, env_id, extra", [(s, e, None) for s, e in KILL_CASES] + GRAPH_KILL_CASES)
-def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, env_id, extra, tmp_path):
-    flags = ["--env-id", env_id, *short(script), "--save-model", *([extra] if extra else [])]
+@pytest.mark.parametrize(
+    "script, env_id, phase, extra",
+    [pytest.param(s, e, p, None, id=f"{s}-{e}-{p}") for s, e, p in KILL_CASES] + GRAPH_KILL_CASES,
+)
+def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, env_id, phase, extra, tmp_path):
+    total, learning_starts, checkpoint_frequency = PHASES[phase]
+    total = ON_POLICY_STEPS if script in ON_POLICY else total
+    flags = ["--env-id", env_id, *short(script, phase), "--save-model", *([extra] if extra else [])]
     full = start(script, tmp_path, *flags, "--run-name", "full")
-    killed = start(script, tmp_path, *flags, "--run-name", "killed", "--checkpoint-frequency", "500")
+    killed = start(script, tmp_path, *flags, "--run-name", "killed", "--checkpoint-frequency", str(checkpoint_frequency))
     checkpoint = tmp_path / "runs" / "killed" / "checkpoint.pt"
     deadline = time.time() + 240
     while not checkpoint.exists() and killed.poll() is None and time.time() < deadline:
         time.sleep(0.05)
     assert checkpoint.exists(), (tmp_path / "killed.log").read_text()
-    time.sleep(random.uniform(0.0, 1.5))  # an arbitrary moment: mid-step, mid-evaluation or mid-write
+    time.sleep(random.uniform(0.0, 1.0))  # an arbitrary moment: mid-step, mid-evaluation or mid-write
     killed.send_signal(signal.SIGKILL)
-    killed.wait()
+    # not vacuous: the signal ended the run, before its last step (a finished run would resume as a no-op)
+    assert killed.wait() == -signal.SIGKILL, "the run ended before the kill: the comparison would test nothing"
+    killed_at = torch.load(checkpoint, weights_only=True)["global_step"]
+    assert killed_at < total
+    if phase == "random":
+        assert checkpoint_frequency <= killed_at < learning_starts  # the random phase goes on after the resume
     resumed = subprocess.run(
         script_command(script, "--resume", "runs/killed", "--save-model"),
         cwd=tmp_path,
@@ -62,11 +89,12 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
         timeout=300,
     )
     assert resumed.returncode == 0, resumed.stderr
+    assert f"resumed at step {killed_at}" in resumed.stdout
     assert full.wait(timeout=300) == 0
 
     full_log, resumed_log = scalars(str(tmp_path / "runs" / "full")), scalars(str(tmp_path / "runs" / "killed"))
     assert resumed_log["eval/episodic_return"] == full_log["eval/episodic_return"]
-    assert [step for step, _ in resumed_log["eval/episodic_return"]] == [0, 500, 1000, 1500]
+    assert [step for step, _ in resumed_log["eval/episodic_return"]] == list(range(0, total + 1, 500))
     loss = "losses/value_loss" if script in ON_POLICY else "losses/qf_loss"
     assert resumed_log[loss] == full_log[loss]  # no step logged twice or lost
     full_actor, resumed_actor = (
@@ -75,6 +103,33 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
     )
     for name in full_actor:
         assert torch.equal(full_actor[name], resumed_actor[name]), name
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+@pytest.mark.parametrize("env_id", ["Hopper-v4", "dm_control/cartpole-swingup-v0"])
+def test_a_checkpoint_restores_the_next_draw_of_every_random_generator(script, env_id, tmp_path):
+    """Python's, NumPy's and torch's global generators, the action space's (the random phase's actions) and the
+    environment's own (its start states), through a checkpoint file and back."""
+    module = load(script)
+    env = module.make_env(env_id, seed=3)
+
+    def draws():
+        start_state, _ = env.reset()  # no seed: the env's generator decides
+        return [
+            random.random(),
+            np.random.rand(),
+            torch.rand(2).tolist(),
+            env.action_space.sample().tolist(),
+            start_state.tolist(),
+        ]
+
+    env.reset(seed=3)
+    draws()  # every generator moved on from its seed
+    module.write_checkpoint(str(tmp_path / "c.pt"), module.snapshot(module.Args(env_id=env_id), env, 0, {}, {}))
+    expected, after = draws(), draws()
+    assert expected != after  # each call draws anew
+    module.restore(torch.load(tmp_path / "c.pt", weights_only=True), env, {}, {})
+    assert draws() == expected
 
 
 @pytest.fixture(scope="module")

@@ -154,3 +154,57 @@ def test_autotune_off_keeps_alpha_fixed(tmp_path, monkeypatch):
         sac, env_id="Pendulum-v1", total_timesteps=400, learning_starts=200, eval_frequency=400, run_name="tuned"
     )
     assert sac.main(args)["alpha"] != pytest.approx(1.0)  # moved from its start value
+
+
+def test_q_ensemble_members_are_independent_relu_mlps():
+    torch.manual_seed(0)
+    qf = sac.QEnsemble(OBS_DIM, 2, num_q=3)
+    obs, actions = torch.randn(8, OBS_DIM), torch.randn(8, 2)
+    q = qf(obs, actions)
+    assert q.shape == (3, 8)
+    for k in range(3):
+        x = torch.relu(torch.cat([obs, actions], 1) @ qf.w1[k] + qf.b1[k, 0])
+        x = torch.relu(x @ qf.w2[k] + qf.b2[k, 0])
+        torch.testing.assert_close(q[k], x @ qf.w3[k, 0] + qf.b3[k])
+    assert not torch.equal(qf.w1[0], qf.w1[1])
+
+
+def test_actor_loss_is_alpha_log_pi_minus_the_min_over_critics():
+    torch.manual_seed(0)
+    actor, qf = sac.Actor(OBS_DIM, SPACE), sac.QEnsemble(OBS_DIM, 2)
+    batch = sac.Batch(torch.randn(64, OBS_DIM), None, None, None, None)
+    rng = torch.get_rng_state()
+    loss = sac.update_actor(batch, actor, torch.optim.SGD(actor.parameters(), lr=0.0), qf, torch.tensor(0.2))
+    torch.set_rng_state(rng)  # the same reparameterised samples
+    with torch.no_grad():
+        pi, log_pi, _ = actor.get_action(batch.observations)
+        q = qf(batch.observations, pi)
+    assert loss.item() == pytest.approx((0.2 * log_pi - q.min(0).values).mean().item(), rel=1e-5)
+    assert abs(loss.item() - (0.2 * log_pi - q.mean(0)).mean().item()) > 1e-4  # not REDQ's mean
+
+
+def test_critic_update_fits_both_critics_to_the_entropy_target_and_leaves_the_actor_alone():
+    torch.manual_seed(0)
+    actor, qf, qf_target = sac.Actor(OBS_DIM, SPACE), sac.QEnsemble(OBS_DIM, 2), sac.QEnsemble(OBS_DIM, 2)
+    batch = sac.Batch(torch.randn(32, OBS_DIM), torch.rand(32, 2), torch.randn(32, OBS_DIM), torch.randn(32), torch.zeros(32))
+    optimizer, args, alpha = torch.optim.Adam(qf.parameters(), lr=1e-3), sac.Args(), torch.tensor(0.2)
+    rng = torch.get_rng_state()
+    loss, q_values = sac.update_critic(batch, qf, torch.optim.SGD(qf.parameters(), lr=0.0), actor, qf_target, alpha, args)
+    torch.set_rng_state(rng)  # the same next actions
+    target = sac.td_target(batch, actor, qf_target, alpha, args)
+    assert loss.item() == pytest.approx(((q_values - target) ** 2).mean(1).sum().item(), rel=1e-5)  # both critics' MSE
+    actor_before, target_before = [p.clone() for p in actor.parameters()], [p.clone() for p in qf_target.parameters()]
+    losses = [sac.update_critic(batch, qf, optimizer, actor, qf_target, alpha, args)[0].item() for _ in range(50)]
+    assert losses[-1] < 0.5 * losses[0]
+    for before, net in [(actor_before, actor), (target_before, qf_target)]:
+        assert all(torch.equal(a, b) for a, b in zip(before, net.parameters()))
+
+
+def test_acting_samples_from_the_policy():
+    torch.manual_seed(0)
+    actor = actor_with([0.0, 0.0], [0.0, 0.0])  # pre-squash mean 0: by symmetry the actions centre on the squashed mean
+    obs = torch.randn(OBS_DIM)
+    actions = torch.stack([sac.noisy_action(obs, actor) for _ in range(2000)])
+    _, _, mean = actor.get_action(obs[None])
+    torch.testing.assert_close(actions.mean(0), mean[0].detach(), atol=0.1, rtol=0)
+    assert (actions.std(0) > 0.1 * actor.action_scale).all()  # spread: the policy's own noise, not its mean
