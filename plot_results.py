@@ -12,11 +12,16 @@ Writes into --out:
                             +- half a std (the paper's Figure 2 style)
   {prefix}table.md          mean +- std of the final evaluation per algorithm and env (best in bold), an
                             average row, OPARL's improvement over each baseline, every run's final
-                            evaluation per seed, the IQM with its 95% CI, and (unless --no-paper) the
+                            evaluation per seed, the IQM, median, mean and optimality gap of normalised
+                            scores with 95% CIs, the probability of improvement of OPARL over each baseline
+                            (and of each OPARL variant over OPARL) with its CI, and (unless --no-paper) the
                             paper's Table 1 numbers beside ours
   {prefix}iqm.png           interquartile mean of normalised scores (DMC return / 1000) over all runs of
                             the DMC tasks every algorithm has finished, with 95% stratified bootstrap confidence intervals
-                            ("Deep RL at the edge of the statistical precipice", Agarwal et al. 2021)
+  {prefix}profiles.png      performance profiles: the fraction of those runs above each normalised score, with 95% CIs
+
+The statistics are rliable's ("Deep RL at the edge of the statistical precipice", Agarwal et al. 2021),
+with a fixed bootstrap seed: the same runs give byte-identical files.
   final_returns.csv         one row per run read (all of them, whatever --algos/--env-ids select):
                             algo, env_id, seed, steps, final_return
   eval_series.csv           every evaluation of every run read: algo, env_id, seed, step, episodic_return
@@ -55,6 +60,9 @@ NOT_ALGORITHM = {
 }
 SMOOTHING = 10  # evaluations: 50k steps of a 1M-step run at one evaluation per 5000
 BOOTSTRAP_REPS = 2000
+BOOTSTRAP_SEED = 0
+# rliable's aggregate metrics of normalised scores, in the table's order (the optimality gap: the mean shortfall below 1)
+METRICS = ("iqm", "median", "mean", "optimality gap")
 
 
 def fail(message: str):
@@ -155,20 +163,22 @@ def read_csv(path: str) -> list:
     return runs
 
 
-def iqm(scores) -> float:
-    """Interquartile mean: the mean of the middle 50% (as scipy.stats.trim_mean(x, 0.25))."""
-    x = np.sort(np.ravel(scores))
-    cut = int(0.25 * len(x))
-    return float(x[cut : len(x) - cut].mean())
+def interval_estimates(scores, func, reps: int = BOOTSTRAP_REPS):
+    """rliable's point estimate of `func` and its 95% stratified bootstrap percentile interval: each task's runs
+    are resampled with replacement. `scores` is a runs x tasks matrix, or a pair of them for a comparison of two
+    algorithms (each resampled on its own). rliable draws its resamples from NumPy's global generator, not from
+    the random_state it takes, so that generator is seeded here: the same scores give the same interval."""
+    from rliable import library as rly
+
+    np.random.seed(BOOTSTRAP_SEED)
+    points, intervals = rly.get_interval_estimates({"x": scores}, func, reps=reps)
+    return np.atleast_1d(points["x"]), intervals["x"]
 
 
-def stratified_bootstrap_ci(scores_by_task: list, reps: int = BOOTSTRAP_REPS, seed: int = 0, confidence: float = 0.95):
-    """Percentile interval of the IQM when each task's runs are resampled with replacement."""
-    rng = np.random.default_rng(seed)
-    stats = [iqm(np.concatenate([s[rng.integers(0, len(s), len(s))] for s in scores_by_task])) for _ in range(reps)]
-    tail = 100 * (1 - confidence) / 2
-    low, high = np.percentile(stats, [tail, 100 - tail])
-    return float(low), float(high)
+def aggregate_metrics(scores: np.ndarray) -> np.ndarray:
+    from rliable import metrics
+
+    return np.array([getattr(metrics, f"aggregate_{name.replace(' ', '_')}")(scores) for name in METRICS])
 
 
 def smooth(values: np.ndarray, window: int = SMOOTHING) -> np.ndarray:
@@ -258,17 +268,27 @@ def score_scales(runs: list, random_scores: dict) -> dict:
 
 
 def normalised_scores(complete: dict, algo: str, envs: set, scales: dict) -> list:
-    """Per task in `envs`, the normalised final returns of `algo`'s runs."""
+    """Per task in `envs` (sorted), the normalised final returns of `algo`'s runs, by seed."""
     return [
-        (np.array([r.returns[-1] for r in group]) - scales[env][0]) / (scales[env][1] - scales[env][0])
+        (np.array([r.returns[-1] for r in sorted(group, key=lambda r: r.seed)]) - scales[env][0])
+        / (scales[env][1] - scales[env][0])
         for (a, env), group in sorted(complete.items())
         if a == algo and env in envs
     ]
 
 
-def aggregate(complete: dict, algos: list, scales: dict) -> dict:
-    """IQM and CI per algorithm over the normalisable tasks that every algorithm with such runs has
-    finished, so that the algorithms are compared on the same tasks."""
+def score_matrix(scores_by_task: list, algo: str) -> np.ndarray:
+    """runs x tasks, as rliable takes scores. Where tasks have different numbers of runs, each keeps its
+    lowest seeds, as many as the task with the fewest has."""
+    runs = min(len(s) for s in scores_by_task)
+    if any(len(s) > runs for s in scores_by_task):
+        warn(f"{algo}: tasks with different numbers of runs; the statistics keep the {runs} lowest seeds of each task")
+    return np.stack([s[:runs] for s in scores_by_task], axis=1)
+
+
+def aggregate(complete: dict, algos: list, scales: dict, reps: int = BOOTSTRAP_REPS) -> tuple:
+    """Over the normalisable tasks that every algorithm with such runs has finished (so that the algorithms are
+    compared on the same tasks): ({algo: {metric: (value, low, high), "tasks": n, "runs": n}}, {algo: runs x tasks})."""
     per_algo = [{env for (b, env) in complete if b == a and env in scales} for a in algos]
     per_algo = [envs for envs in per_algo if envs]
     shared = set.intersection(*per_algo) if per_algo else set()
@@ -278,17 +298,50 @@ def aggregate(complete: dict, algos: list, scales: dict) -> dict:
         warn(
             f"IQM only over the {kind} every algorithm has finished ({len(shared)}); left out: {', '.join(sorted(e.removeprefix('dm_control/') for e in left_out))}"
         )
-    result = {}
+    stats, matrices = {}, {}
     for algo in algos:
         scores = normalised_scores(complete, algo, shared, scales)
         if scores:
-            result[algo] = (
-                iqm(np.concatenate(scores)),
-                *stratified_bootstrap_ci(scores),
-                len(scores),
-                sum(len(s) for s in scores),
-            )
+            matrices[algo] = score_matrix(scores, algo)
+            points, intervals = interval_estimates(matrices[algo], aggregate_metrics, reps)
+            stats[algo] = {name: (points[i], *intervals[:, i]) for i, name in enumerate(METRICS)}
+            stats[algo].update(tasks=matrices[algo].shape[1], runs=matrices[algo].size)
+    return stats, matrices
+
+
+def improvement_pairs(algos: list) -> list:
+    """(X, Y) pairs whose P(X > Y) the table gives: OPARL over each baseline, each OPARL variant over OPARL."""
+    if "oparl" not in algos:
+        return []
+    variants = [a for a in algos if a.startswith("oparl") and a != "oparl"]
+    return [("oparl", a) for a in algos if not a.startswith("oparl")] + [(a, "oparl") for a in variants]
+
+
+def probabilities_of_improvement(matrices: dict, reps: int = BOOTSTRAP_REPS) -> dict:
+    """{(X, Y): (P(X > Y), low, high)}: the probability that a run of X scores above a run of Y on the same task
+    (ties count half), averaged over the tasks, with its interval (rliable)."""
+    from rliable import metrics
+
+    result = {}
+    for x, y in improvement_pairs(list(matrices)):
+        point, interval = interval_estimates((matrices[x], matrices[y]), metrics.probability_of_improvement, reps)
+        result[(x, y)] = (float(point[0]), *map(float, interval[:, 0]))
     return result
+
+
+def performance_profiles(matrices: dict, reps: int = BOOTSTRAP_REPS) -> tuple:
+    """Thresholds tau, and per algorithm the fraction of its runs scoring above each tau with its 95%
+    interval ({algo: (fraction, low, high)}), as rliable's create_performance_profile."""
+    from rliable import library as rly
+
+    everything = np.concatenate([m.ravel() for m in matrices.values()])
+    taus = np.linspace(min(0.0, everything.min()), max(1.0, everything.max()), 101)
+    profiles = {}
+    for algo, scores in matrices.items():
+        np.random.seed(BOOTSTRAP_SEED)
+        fraction, interval = rly.create_performance_profile({algo: scores}, taus, reps=reps)
+        profiles[algo] = (fraction[algo], *interval[algo])
+    return taus, profiles
 
 
 def normalisation_text(scales: dict) -> str:
@@ -308,16 +361,42 @@ def plot_iqm(stats: dict, path: str, normalisation: str = "DMC return / 1000"):
     colors = colors_of(algos)
     fig, ax = plt.subplots(figsize=(6, 0.6 * len(algos) + 1.2))
     for i, algo in enumerate(algos):
-        value, low, high = stats[algo][:3]
+        value, low, high = stats[algo]["iqm"]
         ax.plot([low, high], [i, i], color=colors[algo], linewidth=6, alpha=0.5, solid_capstyle="butt")
         ax.plot([value], [i], "|", color="black", markersize=16)
-    ax.set_yticks(range(len(algos)), [f"{a}\n{stats[a][4]} runs, {stats[a][3]} tasks" for a in algos])
+    ax.set_yticks(range(len(algos)), [f"{a}\n{stats[a]['runs']} runs, {stats[a]['tasks']} tasks" for a in algos])
     ax.set_ylim(len(algos) - 0.5, -0.5)
     scale_lines = normalisation.replace("; ", "\n")  # one line per kind of task
     ax.set_xlabel(f"IQM of normalised score\n{scale_lines}\nline: 95% stratified bootstrap confidence interval")
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")  # widen the image to a label longer than the axes
+    plt.close(fig)
+
+
+def plot_profiles(taus: np.ndarray, profiles: dict, path: str, normalisation: str = "DMC return / 1000"):
+    """Performance profiles: the fraction of runs whose normalised score exceeds each threshold, shaded 95% CI."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    algos = algo_order(profiles)
+    colors = colors_of(algos)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for algo in algos:
+        fraction, low, high = profiles[algo]
+        ax.plot(taus, fraction, color=colors[algo], label=algo, linewidth=2)
+        ax.fill_between(taus, low, high, color=colors[algo], alpha=0.2, linewidth=0)
+    scale_lines = normalisation.replace("; ", "\n")
+    ax.set_xlabel(f"normalised score threshold tau\n{scale_lines}")
+    ax.set_ylabel("fraction of runs with score > tau")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("Performance profiles (95% stratified bootstrap CI)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -342,7 +421,16 @@ def read_random_scores(path: str) -> dict:
         return {row["env_id"]: float(row["random_return"]) for row in reader}
 
 
-def write_table(complete: dict, stats: dict, paper: dict, path: str, claims: dict = None, scales: dict = None):
+def write_table(
+    complete: dict,
+    stats: dict,
+    paper: dict,
+    path: str,
+    claims: dict = None,
+    scales: dict = None,
+    improvements: dict = None,
+    reps: int = BOOTSTRAP_REPS,
+):
     algos = algo_order({a for a, _ in complete})
     envs = sorted({e for _, e in complete})
     cell = {key: np.array([r.returns[-1] for r in group]) for key, group in complete.items() if group}
@@ -434,13 +522,33 @@ def write_table(complete: dict, stats: dict, paper: dict, path: str, claims: dic
         kind = "DMC tasks" if normalisation == "DMC return / 1000" else "normalised tasks"
         lines += [
             "",
-            f"Interquartile mean of normalised scores ({normalisation}) over all runs of the {kind} every algorithm has finished, 95% stratified bootstrap CI:",
+            f"Aggregate metrics of normalised scores ({normalisation}) over all runs of the {kind} every algorithm has finished, 95% stratified bootstrap CI:",
             "",
         ]
-        lines += ["| algorithm | IQM | 95% CI | tasks | runs |", "|---|---|---|---|---|"]
+        lines += [
+            "| algorithm | IQM | 95% CI | median | 95% CI | mean | 95% CI | optimality gap | 95% CI | tasks | runs |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
         for a in algo_order(stats):
-            value, low, high, tasks, runs = stats[a]
-            lines.append(f"| {a} | {value:.3f} | [{low:.3f}, {high:.3f}] | {tasks} | {runs} |")
+            cells = [f"{value:.3f} | [{low:.3f}, {high:.3f}]" for value, low, high in (stats[a][m] for m in METRICS)]
+            lines.append(f"| {a} | {' | '.join(cells)} | {stats[a]['tasks']} | {stats[a]['runs']} |")
+        if improvements:
+            lines += [
+                "",
+                "Probability of improvement P(X > Y): the chance that a run of X scores above a run of Y on the same task (ties "
+                "count half), averaged over the same tasks, 95% stratified bootstrap CI:",
+                "",
+                "| X | Y | P(X > Y) | 95% CI |",
+                "|---|---|---|---|",
+            ]
+            for (x, y), (p, low, high) in improvements.items():
+                lines.append(f"| {x} | {y} | {p:.3f} | [{low:.3f}, {high:.3f}] |")
+        lines += [
+            "",
+            "rliable's definitions: the IQM is the mean of the middle half of all runs' scores, the median and the mean are "
+            "those of the per-task mean scores, the optimality gap is the mean shortfall of the runs' scores below 1. "
+            f"Intervals: {reps} stratified bootstrap resamples, NumPy seed {BOOTSTRAP_SEED}.",
+        ]
         scaled = [env for env in envs if env in scales and not env.startswith("dm_control/")]
         if scaled:
             lines += [
@@ -499,9 +607,17 @@ def main(argv=None):
         help="trailing window of the curves, in evaluations (1: raw curves); the table and IQM use the raw final evaluation",
     )
     parser.add_argument("--finished-only", action="store_true", help="from runs folders, only runs benchmark.sh marked DONE")
+    parser.add_argument(
+        "--bootstrap-reps",
+        type=int,
+        default=BOOTSTRAP_REPS,
+        help=f"stratified bootstrap resamples behind every interval (default {BOOTSTRAP_REPS}); the committed results use the default",
+    )
     args = parser.parse_args(argv)
     if args.smoothing < 1:
         fail(f"--smoothing must be a whole number of evaluations >= 1 (1 draws the raw curves), got {args.smoothing}")
+    if args.bootstrap_reps < 100:
+        fail(f"--bootstrap-reps must be >= 100 (a 95% interval needs the tails of many resamples), got {args.bootstrap_reps}")
 
     merged = {}
     for source in args.sources:
@@ -532,17 +648,22 @@ def main(argv=None):
     os.makedirs(args.out, exist_ok=True)
     out = lambda name: os.path.join(args.out, args.prefix + name)  # noqa: E731
     complete = complete_runs(runs)
-    stats = aggregate(complete, algo_order({a for a, _ in complete}), scales)
+    stats, matrices = aggregate(complete, algo_order({a for a, _ in complete}), scales, args.bootstrap_reps)
+    improvements = probabilities_of_improvement(matrices, args.bootstrap_reps)
     plot_curves(runs, out("curves.png"), args.smoothing)
-    write_table(complete, stats, paper, out("table.md"), claims, scales)
+    write_table(complete, stats, paper, out("table.md"), claims, scales, improvements, args.bootstrap_reps)
+    figures = ["curves.png"]
     if stats:
-        plot_iqm(stats, out("iqm.png"), normalisation_text({env: scales[env] for _, env in complete if env in scales}))
+        normalisation = normalisation_text({env: scales[env] for _, env in complete if env in scales})
+        plot_iqm(stats, out("iqm.png"), normalisation)
+        plot_profiles(*performance_profiles(matrices, args.bootstrap_reps), out("profiles.png"), normalisation)
+        figures += ["iqm.png", "profiles.png"]
     else:
         print(
             "no normalisable task among the runs, so no IQM plot (DMC returns are normalised by 1000; give --random-scores for other tasks)"
         )
     write_csvs(all_runs, os.path.join(args.out, "eval_series.csv"), os.path.join(args.out, "final_returns.csv"))
-    written = [out(name) for name in ["curves.png", "table.md", *(["iqm.png"] if stats else [])]]
+    written = [out(name) for name in [figures[0], "table.md", *figures[1:]]]
     written += [os.path.join(args.out, name) for name in ("eval_series.csv", "final_returns.csv")]
     print(
         f"{len(runs)} runs of {len({r.algo for r in runs})} algorithm(s) on {len({r.env_id for r in runs})} env(s) -> {', '.join(written)}"

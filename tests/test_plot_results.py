@@ -11,6 +11,11 @@ import plot_results as pr
 DMC_A, DMC_B = "dm_control/cartpole-swingup-v0", "dm_control/walker-walk-v0"
 
 
+def plot(argv: list):
+    """plot_results.py's command line with 200 bootstrap resamples (the default's 2000 take seconds per call)."""
+    pr.main(argv if "--bootstrap-reps" in argv else [*argv, "--bootstrap-reps", "200"])
+
+
 def write_run(root, exp_name, env_id, seed, returns, every=5000, **params):
     """A run folder as the scripts write it: the hyperparameter table and eval/episodic_return."""
     run_dir = os.path.join(
@@ -46,7 +51,7 @@ def sweep(tmp_path):
 
 def test_table_has_mean_std_best_average_and_improvement(sweep, tmp_path):
     out = str(tmp_path / "out")
-    pr.main([sweep, "--out", out, "--no-paper"])
+    plot([sweep, "--out", out, "--no-paper"])
     table = open(os.path.join(out, "table.md")).read()
     assert "| cartpole-swingup-v0 | **200.0 +- 81.6 (3)** | 50.0 +- 0.0 (3) |" in table
     assert "| walker-walk-v0 | **900.0 +- 0.0 (3)** | 700.0 +- 81.6 (3) |" in table
@@ -58,7 +63,7 @@ def test_table_has_mean_std_best_average_and_improvement(sweep, tmp_path):
 
 def test_final_returns_csv_has_one_row_per_run(sweep, tmp_path):
     out = str(tmp_path / "out")
-    pr.main([sweep, "--out", out, "--no-paper"])
+    plot([sweep, "--out", out, "--no-paper"])
     rows = open(os.path.join(out, "final_returns.csv")).read().splitlines()
     assert rows[0] == "algo,env_id,seed,steps,final_return" and len(rows) == 13
     assert "oparl,dm_control/cartpole-swingup-v0,3,10000,300.0000" in rows
@@ -66,43 +71,104 @@ def test_final_returns_csv_has_one_row_per_run(sweep, tmp_path):
 
 def test_the_csv_alone_regenerates_every_file(sweep, tmp_path):
     first, second = str(tmp_path / "first"), str(tmp_path / "second")
-    pr.main([sweep, "--out", first])
-    pr.main([os.path.join(first, "eval_series.csv"), "--out", second])
+    plot([sweep, "--out", first])
+    plot([os.path.join(first, "eval_series.csv"), "--out", second])
     for name in ("table.md", "eval_series.csv", "final_returns.csv"):
         assert open(os.path.join(first, name)).read() == open(os.path.join(second, name)).read()
 
 
 def test_paper_columns_come_from_the_paper_table(sweep, tmp_path):
     out = str(tmp_path / "out")
-    pr.main([sweep, "--out", out])
+    plot([sweep, "--out", out])
     table = open(os.path.join(out, "table.md")).read()
     assert "oparl *paper*" in table and "874.6 +- 7.5" in table and "975.3 +- 2.9" in table
     assert "the paper's Table 1" in table
 
 
-def test_iqm_is_the_mean_of_the_middle_half():
-    assert pr.iqm([0.1, 0.2, 0.3, 0.4]) == pytest.approx(0.25)
-    assert pr.iqm([5.0, 0.0, 1.0, 2.0, 3.0, 4.0, 100.0, -50.0]) == pytest.approx(2.5)  # middle four: 1, 2, 3, 4
-    assert pr.iqm([1.0, 2.0, 3.0, 4.0, 5.0]) == pytest.approx(3.0)  # one cut from each end
+def iqm_by_hand(scores) -> float:
+    """The mean of the middle half, a quarter cut from each end (as the IQM this script computed before rliable)."""
+    x = np.sort(np.ravel(scores))
+    cut = int(0.25 * len(x))
+    return float(x[cut : len(x) - cut].mean())
+
+
+def test_rliables_iqm_is_the_mean_of_the_middle_half():
+    for scores in ([0.1, 0.2, 0.3, 0.4], [5.0, 0.0, 1.0, 2.0, 3.0, 4.0, 100.0, -50.0], [1.0, 2.0, 3.0, 4.0, 5.0]):
+        iqm = pr.aggregate_metrics(np.array(scores)[:, None])[pr.METRICS.index("iqm")]
+        assert iqm == pytest.approx(iqm_by_hand(scores))
+    assert iqm_by_hand([5.0, 0.0, 1.0, 2.0, 3.0, 4.0, 100.0, -50.0]) == pytest.approx(2.5)  # middle four: 1, 2, 3, 4
+
+
+def test_iqm_of_the_committed_main_results_is_unchanged_by_rliable():
+    """The IQM point estimates of results/main equal those of the hand-written NumPy this script used before."""
+    runs = pr.read_csv(os.path.join(os.path.dirname(pr.__file__), "results", "main", "eval_series.csv"))
+    complete = pr.complete_runs(runs)
+    algos = pr.algo_order({a for a, _ in complete})
+    stats, matrices = pr.aggregate(complete, algos, pr.score_scales(runs, {}), reps=100)
+    assert set(stats) == {"oparl", "td3", "sac"}
+    for algo in algos:
+        assert matrices[algo].shape == (3, 6)  # 3 seeds x the 6 DMC tasks (Hopper-v4 has no normalisation here)
+        assert stats[algo]["iqm"][0] == pytest.approx(iqm_by_hand(matrices[algo]), abs=1e-12)
+    # the values the hand-written IQM gave (README, docs/results.md)
+    assert [round(stats[a]["iqm"][0], 3) for a in ("oparl", "td3", "sac")] == [0.535, 0.540, 0.861]
 
 
 def test_bootstrap_ci_of_two_runs_spans_both_by_hand():
     # one task, runs [0, 1]: resamples {0,0}, {0,1}, {1,0}, {1,1} -> IQM 0, .5, .5, 1 with probability 1/4 each
-    low, high = pr.stratified_bootstrap_ci([np.array([0.0, 1.0])], reps=4000)
-    assert (low, high) == (0.0, 1.0)
-    low, high = pr.stratified_bootstrap_ci([np.array([0.0, 1.0])], reps=4000, confidence=0.4)
-    assert (low, high) == (0.5, 0.5)
+    points, intervals = pr.interval_estimates(np.array([[0.0], [1.0]]), pr.aggregate_metrics, reps=4000)
+    assert points[0] == 0.5 and tuple(intervals[:, 0]) == (0.0, 1.0)
 
 
 def test_bootstrap_is_stratified_by_task():
     # within each task the runs agree, so resampling within tasks never changes the pooled scores
-    scores = [np.full(3, 0.2), np.full(3, 0.8), np.full(3, 0.5)]
-    assert pr.stratified_bootstrap_ci(scores) == (pr.iqm(np.concatenate(scores)),) * 2
+    scores = np.array([[0.2, 0.8, 0.5]] * 3)
+    points, intervals = pr.interval_estimates(scores, pr.aggregate_metrics)
+    np.testing.assert_array_equal(intervals, np.stack([points, points]))
+
+
+def test_the_bootstrap_is_seeded():
+    scores = np.random.default_rng(1).random((3, 4))
+    np.random.seed(123)  # whatever state the global generator is in
+    first = pr.interval_estimates(scores, pr.aggregate_metrics)[1]
+    np.random.random(7)
+    np.testing.assert_array_equal(pr.interval_estimates(scores, pr.aggregate_metrics)[1], first)
+
+
+def test_probability_of_improvement_of_identical_and_dominating_algorithms():
+    rng = np.random.default_rng(0)
+    a, better = rng.random((3, 5)), rng.random((3, 5)) + 2.0
+    matrices = {"oparl": a, "td3": a.copy(), "sac": better, "oparl_variant": a - 5.0}
+    result = pr.probabilities_of_improvement(matrices, reps=200)
+    p, low, high = result[("oparl", "td3")]
+    assert p == 0.5 and low < 0.5 < high and low == pytest.approx(1 - high, abs=0.05)  # identical: 0.5, resampled either way
+    assert result[("oparl", "sac")] == (0.0, 0.0, 0.0)  # every run of sac above every run of oparl
+    assert result[("oparl_variant", "oparl")] == (0.0, 0.0, 0.0)  # a variant is compared against OPARL
+    assert set(result) == {("oparl", "td3"), ("oparl", "sac"), ("oparl_variant", "oparl")}
+    half = pr.probabilities_of_improvement({"oparl": np.array([[1.0], [3.0]]), "td3": np.array([[2.0], [2.0]])}, reps=200)
+    assert half[("oparl", "td3")][0] == 0.5  # one of two OPARL runs above both TD3 runs
+
+
+def test_probability_of_improvement_rows_in_the_table(sweep, tmp_path):
+    out = str(tmp_path / "out")
+    plot([sweep, "--out", out, "--no-paper", "--bootstrap-reps", "200"])
+    table = open(os.path.join(out, "table.md")).read()
+    # cartpole: oparl 100, 200, 300 against td3 50, 50, 50: 1; walker: 900 x3 against 600, 700, 800: 1
+    assert "| oparl | td3 | 1.000 | [1.000, 1.000] |" in table
+    assert "Intervals: 200 stratified bootstrap resamples" in table
+    assert os.path.getsize(os.path.join(out, "profiles.png")) > 0
+
+
+def test_performance_profile_is_the_fraction_of_runs_above_each_threshold():
+    taus, profiles = pr.performance_profiles({"oparl": np.array([[0.1, 0.5], [0.3, 0.9]])}, reps=200)
+    assert taus[0] == 0.0 and taus[-1] == 1.0
+    fraction = profiles["oparl"][0]
+    assert fraction[np.searchsorted(taus, 0.2)] == 0.75 and fraction[np.searchsorted(taus, 0.6)] == 0.25
+    assert (np.diff(fraction) <= 0).all()
 
 
 def test_iqm_rows_in_the_table(sweep, tmp_path):
     out = str(tmp_path / "out")
-    pr.main([sweep, "--out", out, "--no-paper"])
+    plot([sweep, "--out", out, "--no-paper"])
     table = open(os.path.join(out, "table.md")).read()
     # oparl scores: .1 .2 .3 .9 .9 .9 -> middle half .3 .9 .9 (int(0.25*6) = 1 cut each end: .2 .3 .9 .9)
     assert f"| oparl | {np.mean([0.2, 0.3, 0.9, 0.9]):.3f} |" in table
@@ -118,7 +184,7 @@ def test_iqm_compares_algorithms_on_the_same_tasks(sweep, tmp_path, capsys):
     for seed in (1, 2, 3):
         write_run(sweep, "oparl_continuous_action", "dm_control/finger-spin-v0", seed, [0, 0])
     out = str(tmp_path / "out")
-    pr.main([sweep, "--out", out, "--no-paper"])
+    plot([sweep, "--out", out, "--no-paper"])
     assert "IQM only over the DMC tasks every algorithm has finished (2); left out: finger-spin-v0" in capsys.readouterr().err
     table = open(os.path.join(out, "table.md")).read()
     assert f"| oparl | {np.mean([0.2, 0.3, 0.9, 0.9]):.3f} |" in table and "| 2 | 6 |" in table
@@ -128,10 +194,10 @@ def test_smoothing_window_is_a_flag(sweep, tmp_path, monkeypatch):
     windows = []
     real = pr.smooth
     monkeypatch.setattr(pr, "smooth", lambda values, window=pr.SMOOTHING: windows.append(window) or real(values, window))
-    pr.main([sweep, "--out", str(tmp_path / "a"), "--no-paper", "--smoothing", "3"])
+    plot([sweep, "--out", str(tmp_path / "a"), "--no-paper", "--smoothing", "3"])
     assert windows and set(windows) == {3}
     with pytest.raises(SystemExit, match="--smoothing must be a whole number of evaluations >= 1"):
-        pr.main([sweep, "--out", str(tmp_path / "b"), "--smoothing", "0"])
+        plot([sweep, "--out", str(tmp_path / "b"), "--smoothing", "0"])
 
 
 def test_variants_of_one_script_are_told_apart(tmp_path):
@@ -149,7 +215,7 @@ def test_cut_short_runs_are_named_and_left_out_of_the_table(tmp_path, capsys):
     write_run(root, "td3_continuous_action", DMC_A, 2, [0, 20, 50])
     write_run(root, "td3_continuous_action", DMC_A, 3, [0, 15])
     out = str(tmp_path / "out")
-    pr.main([root, "--out", out, "--no-paper"])
+    plot([root, "--out", out, "--no-paper"])
     err = capsys.readouterr().err
     assert "cut short before step 10000" in err and "seed 3 (at 5000)" in err
     table = open(os.path.join(out, "table.md")).read()
@@ -167,7 +233,7 @@ def test_missing_or_empty_runs_folder(setup, message, tmp_path):
     root = str(tmp_path / "runs")
     setup(root)
     with pytest.raises(SystemExit, match=message):
-        pr.main([root, "--out", str(tmp_path / "out")])
+        plot([root, "--out", str(tmp_path / "out")])
 
 
 def test_runs_without_evaluations_are_reported(tmp_path, capsys):
@@ -176,7 +242,7 @@ def test_runs_without_evaluations_are_reported(tmp_path, capsys):
     writer.add_scalar("charts/SPS", 100.0, 0)
     writer.close()
     with pytest.raises(SystemExit, match="no run under .* logged eval/episodic_return"):
-        pr.main([root, "--out", str(tmp_path / "out")])
+        plot([root, "--out", str(tmp_path / "out")])
     assert "have no eval/episodic_return and are left out" in capsys.readouterr().err
 
 
@@ -184,23 +250,23 @@ def test_foreign_csv_is_refused(tmp_path):
     path = tmp_path / "x.csv"
     path.write_text("a,b\n1,2\n")
     with pytest.raises(SystemExit, match="lacks the column"):
-        pr.main([str(path), "--out", str(tmp_path / "out")])
+        plot([str(path), "--out", str(tmp_path / "out")])
 
 
 def test_filters_name_what_exists(sweep, tmp_path):
     with pytest.raises(SystemExit, match="--algos: redq not found; the runs have oparl, td3"):
-        pr.main([sweep, "--out", str(tmp_path / "out"), "--algos", "redq"])
+        plot([sweep, "--out", str(tmp_path / "out"), "--algos", "redq"])
 
 
 def test_sources_merge_and_finished_only_skips_unmarked_runs(sweep, tmp_path, capsys):
     first = str(tmp_path / "first")
-    pr.main([sweep, "--out", first, "--no-paper", "--env-ids", DMC_A])
+    plot([sweep, "--out", first, "--no-paper", "--env-ids", DMC_A])
     more = str(tmp_path / "more")
     done = write_run(more, "sac_continuous_action", DMC_A, 1, [0, 5, 7])
     open(os.path.join(done, "DONE"), "w").close()
     write_run(more, "sac_continuous_action", DMC_A, 2, [0, 5])  # still running: no DONE
     merged = str(tmp_path / "merged")
-    pr.main([os.path.join(first, "eval_series.csv"), more, "--finished-only", "--out", merged, "--no-paper"])
+    plot([os.path.join(first, "eval_series.csv"), more, "--finished-only", "--out", merged, "--no-paper"])
     assert "leaving out 1 unfinished run(s)" in capsys.readouterr().out
     rows = open(os.path.join(merged, "final_returns.csv")).read().splitlines()
     assert len(rows) == 1 + 12 + 1 and "sac,dm_control/cartpole-swingup-v0,1,10000,7.0000" in rows
@@ -208,7 +274,7 @@ def test_sources_merge_and_finished_only_skips_unmarked_runs(sweep, tmp_path, ca
 
 def test_selection_shapes_the_figures_but_the_csvs_keep_every_run(sweep, tmp_path):
     out = str(tmp_path / "out")
-    pr.main([sweep, "--out", out, "--no-paper", "--algos", "td3", "--prefix", "td3_"])
+    plot([sweep, "--out", out, "--no-paper", "--algos", "td3", "--prefix", "td3_"])
     assert "oparl" not in open(os.path.join(out, "td3_table.md")).read()
     assert len(open(os.path.join(out, "final_returns.csv")).read().splitlines()) == 13
     assert not os.path.exists(os.path.join(out, "td3_final_returns.csv"))
@@ -227,7 +293,7 @@ def test_each_paper_system_keeps_its_colour_and_other_names_take_the_free_ones()
 
 def test_table_lists_every_final_return_per_seed(sweep, tmp_path):
     out = str(tmp_path / "out")
-    pr.main([sweep, "--out", out, "--no-paper"])
+    plot([sweep, "--out", out, "--no-paper"])
     table = open(os.path.join(out, "table.md")).read()
     assert "| task | algorithm | seed 1 | seed 2 | seed 3 |" in table
     assert "| cartpole-swingup-v0 | oparl | 100.0 | 200.0 | 300.0 |" in table
@@ -239,10 +305,10 @@ def test_run_folders_picked_one_by_one_merge_and_unfinished_ones_are_left_out(sw
     for run_dir in run_dirs[:-1]:
         open(os.path.join(run_dir, "DONE"), "w").close()
     out = str(tmp_path / "out")
-    pr.main([*run_dirs, "--finished-only", "--out", out, "--no-paper"])  # the last folder alone has no finished run
+    plot([*run_dirs, "--finished-only", "--out", out, "--no-paper"])  # the last folder alone has no finished run
     assert len(open(os.path.join(out, "final_returns.csv")).read().splitlines()) == 1 + len(run_dirs) - 1
     with pytest.raises(SystemExit, match="no finished run"):
-        pr.main([run_dirs[-1], "--finished-only", "--out", out, "--no-paper"])
+        plot([run_dirs[-1], "--finished-only", "--out", out, "--no-paper"])
 
 
 @pytest.fixture
@@ -261,10 +327,13 @@ def mujoco_sweep(tmp_path):
 def test_non_dmc_tasks_are_normalised_from_the_random_policy_to_the_best_seen(mujoco_sweep, tmp_path):
     root, scores = mujoco_sweep
     out = str(tmp_path / "out")
-    pr.main([root, "--out", out, "--no-paper", "--random-scores", scores])
+    plot([root, "--out", out, "--no-paper", "--random-scores", scores])
     table = open(os.path.join(out, "table.md")).read()
     # (300 + 100) / (400 + 100) = 0.8 for both oparl runs; td3 (100 + 100) / 500 = 0.4 and (200 + 100) / 500 = 0.6
-    assert "| oparl | 0.800 | [0.800, 0.800] | 1 | 2 |" in table
+    assert (
+        "| oparl | 0.800 | [0.800, 0.800] | 0.800 | [0.800, 0.800] | 0.800 | [0.800, 0.800] | 0.200 | [0.200, 0.200] | 1 | 2 |"
+        in table
+    )
     assert "| td3 | 0.500 |" in table
     assert "(return - random policy) / (best seen - random policy)" in table
     assert "| Ant-v4 | -100.0 | 400.0 |" in table
@@ -274,8 +343,9 @@ def test_non_dmc_tasks_are_normalised_from_the_random_policy_to_the_best_seen(mu
 def test_without_random_scores_a_mujoco_task_gets_no_iqm(mujoco_sweep, tmp_path, capsys):
     root, _ = mujoco_sweep
     out = str(tmp_path / "out")
-    pr.main([root, "--out", out, "--no-paper"])
-    assert "Interquartile mean" not in open(os.path.join(out, "table.md")).read()
+    plot([root, "--out", out, "--no-paper"])
+    assert "Aggregate metrics" not in open(os.path.join(out, "table.md")).read()
+    assert not os.path.exists(os.path.join(out, "profiles.png"))
     assert "no normalisable task" in capsys.readouterr().out
 
 
@@ -284,7 +354,7 @@ def test_oparls_gain_over_each_baseline_per_task_beside_the_papers_claim(mujoco_
     claims = tmp_path / "claims.csv"
     claims.write_text("env_id,baseline,improvement_pct,source\nAnt-v4,td3,51.25,x\n")
     out = str(tmp_path / "out")
-    pr.main([root, "--out", out, "--paper-claims", str(claims)])
+    plot([root, "--out", out, "--paper-claims", str(claims)])
     table = open(os.path.join(out, "table.md")).read()
     # 300 / 150 - 1 = +100%; PPO's mean is negative: no percentage
     assert "| Ant-v4 | n/a | +100.0% (paper: +51.25%) |" in table
@@ -301,15 +371,39 @@ def test_random_scores_file_errors_are_one_line(mujoco_sweep, tmp_path):
         (str(bad), "needs the columns env_id and random_return"),
     ]:
         with pytest.raises(SystemExit, match=message):
-            pr.main([root, "--out", str(tmp_path / "out"), "--random-scores", path])
+            plot([root, "--out", str(tmp_path / "out"), "--random-scores", path])
 
 
 def test_iqm_figure_widens_to_a_label_longer_than_the_axes(tmp_path):
     import matplotlib.image
 
-    stats = {"oparl": (0.5, 0.4, 0.6, 2, 6), "td3": (0.3, 0.2, 0.4, 2, 6)}
+    stats = {"oparl": {"iqm": (0.5, 0.4, 0.6), "tasks": 2, "runs": 6}, "td3": {"iqm": (0.3, 0.2, 0.4), "tasks": 2, "runs": 6}}
     short, long = str(tmp_path / "short.png"), str(tmp_path / "long.png")
     pr.plot_iqm(stats, short, normalisation="DMC return / 1000")
     pr.plot_iqm(stats, long, normalisation="a very long description of how some other kind of task is normalised " * 2)
     short_width, long_width = (matplotlib.image.imread(path).shape[1] for path in (short, long))
     assert long_width > short_width + 200  # the whole label is in the image, not cut at the figure's edge
+
+
+def test_a_committed_folder_regenerates_byte_for_byte(tmp_path):
+    """results/release from its own CSV with its documented command: every file comes back identical."""
+    folder = os.path.join(os.path.dirname(pr.__file__), "results", "release")
+    plot(
+        [
+            os.path.join(folder, "eval_series.csv"),
+            "--no-paper",
+            "--smoothing",
+            "3",
+            "--out",
+            str(tmp_path),
+            "--bootstrap-reps",
+            "2000",
+        ]
+    )
+    for name in ("table.md", "curves.png", "iqm.png", "profiles.png", "eval_series.csv", "final_returns.csv"):
+        assert (tmp_path / name).read_bytes() == open(os.path.join(folder, name), "rb").read(), name
+
+
+def test_too_few_bootstrap_resamples_are_refused(sweep, tmp_path):
+    with pytest.raises(SystemExit, match="--bootstrap-reps must be >= 100"):
+        pr.main([sweep, "--out", str(tmp_path), "--bootstrap-reps", "10"])
