@@ -18,8 +18,8 @@ usage() {
   cat <<EOF
 Usage: bash benchmark.sh [flags] [-- flags passed to every script]
 
-  --algos A [A ...]         scripts by short name, {A}_continuous_action.py: oparl td3 sac redq ppo rnd ebd
-                            (default: oparl td3 sac)
+  --algos A [A ...]         scripts by short name, {A}_continuous_action.py: oparl td3 sac redq ppo rnd ebd,
+                            or any other such file (default: oparl td3 sac)
   --env-ids E [E ...]       environment ids (default: the paper's 18 DeepMind Control tasks)
   --suite dmc|mujoco        the paper's 18 DMC tasks or its 4 MuJoCo tasks (Ant, Hopper, Humanoid, Walker2d -v4)
   --seeds S [S ...]         seeds (default: 1 2 3 4 5 6 7 8 9 10)

@@ -34,6 +34,7 @@ import argparse
 import csv
 import os
 import sys
+import zlib
 from collections import defaultdict
 from dataclasses import dataclass
 
@@ -192,14 +193,23 @@ def algo_order(algos) -> list:
     return sorted(algos, key=lambda a: (not a.startswith("oparl"), a != "oparl", a))
 
 
-# the paper's systems keep one colour in every figure; other names (ablations, variants) take the rest in order
+# the paper's systems keep one colour in every figure
 PAPER_COLORS = {"oparl": "C0", "td3": "C1", "sac": "C2", "ppo": "C3", "rnd": "C4", "ebd": "C5", "redq": "C6"}
+# every other name (an ablation, a variant, a new script) is given one of these by its name, the same in every
+# figure; two names that draw the same one in a figure are told apart by taking the next free one
+OTHER_COLORS = ["C7", "C8", "C9", "black", "#843c39", "#6b6ecf", "#637939"]  # fmt: skip
 
 
 def colors_of(algos: list) -> dict:
-    taken = {PAPER_COLORS[a] for a in algos if a in PAPER_COLORS}
-    spare = iter(c for c in (f"C{i}" for i in range(10)) if c not in taken)
-    return {a: PAPER_COLORS.get(a) or next(spare, "gray") for a in algos}
+    colors = {a: PAPER_COLORS[a] for a in algos if a in PAPER_COLORS}
+    for algo in sorted(a for a in algos if a not in PAPER_COLORS):
+        free = [c for c in OTHER_COLORS if c not in colors.values()]
+        if not free:
+            colors[algo] = "gray"
+            continue
+        start = zlib.crc32(algo.encode()) % len(OTHER_COLORS)
+        colors[algo] = next(c for c in OTHER_COLORS[start:] + OTHER_COLORS[:start] if c in free)
+    return colors
 
 
 def complete_runs(runs: list) -> dict:

@@ -1,7 +1,10 @@
 import dataclasses
+import glob
 import importlib
 import os
+import re
 import sys
+from typing import Optional
 
 import pytest
 
@@ -10,10 +13,36 @@ sys.path.insert(0, REPO)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 import torch  # noqa: E402  (after the thread setting it reads)
 
-# the algorithm scripts, by short name; every script-level test runs on each of them
-SCRIPTS = ["td3", "oparl", "sac", "redq", "ppo", "rnd", "ebd"]
-OFF_POLICY = ["td3", "oparl", "sac", "redq"]  # the scripts with a replay buffer
-ON_POLICY = ["ppo", "rnd", "ebd"]  # PPO and the exploration methods built on it
+
+def source(script: str) -> str:
+    return open(os.path.join(REPO, f"{script}_continuous_action.py")).read()
+
+
+# the algorithm scripts, by short name, as found on disk: every script-level test runs on each of them, a new
+# {name}_continuous_action.py included, with nothing to register (docs/forking.md)
+SCRIPTS = sorted(
+    os.path.basename(p).removesuffix("_continuous_action.py") for p in glob.glob(f"{REPO}/*_continuous_action.py")
+)
+OFF_POLICY = [s for s in SCRIPTS if "class ReplayBuffer" in source(s)]  # the scripts with a replay buffer
+ON_POLICY = [s for s in SCRIPTS if s not in OFF_POLICY]  # PPO and the exploration methods built on it
+
+
+def base_of(script: str) -> Optional[str]:
+    """The script a script was copied from, as its header names it (`diff td3_continuous_action.py
+    oparl_continuous_action.py`); None for a script copied from CleanRL (td3, ppo)."""
+    header = " ".join(line.lstrip("# ") for line in source(script).splitlines() if line.startswith("#"))
+    found = re.search(rf"`diff (\w+)_continuous_action\.py {script}_continuous_action\.py`", header)
+    return found.group(1) if found else None
+
+
+def declared(table: dict, script: str):
+    """A per-script test setting: the script's own entry, else its base's (a fork is tested as its base
+    until it declares otherwise), else None."""
+    while script is not None and script not in table:
+        script = base_of(script)
+    return table.get(script)
+
+
 # what keeps each script's test runs short, beyond fewer steps
 SHORT_ROLLOUTS = {"num_steps": 256, "num_minibatches": 4, "update_epochs": 2}
 # REDQ: 2 critic updates per step and 4 critics (a random 2 of them in each target) instead of 20 and 10
@@ -47,7 +76,7 @@ def algo(request):
 def settings(script: str, values: dict) -> dict:
     """`values` plus the script's QUICK settings, without the off-policy ones a script lacks."""
     fields = {f.name for f in dataclasses.fields(load(script).Args)}
-    merged = {**QUICK.get(script, {}), **values}
+    merged = {**(declared(QUICK, script) or {}), **values}
     return {k: v for k, v in merged.items() if k in fields or k not in OFF_POLICY_ONLY}
 
 
@@ -64,6 +93,20 @@ def cli_flags(script: str, **values) -> list:
     for name, value in settings(script, values).items():
         flags += [f"--{name.replace('_', '-')}", str(value)]
     return flags
+
+
+def assert_ensemble_is_independent_mlps(qf, obs_dim: int, action_dim: int, activation) -> tuple:
+    """A QEnsemble of 3 members against each member's MLP computed by hand; returns (obs, actions, Q-values)."""
+    torch.manual_seed(0)
+    obs, actions = torch.randn(8, obs_dim), torch.randn(8, action_dim)
+    q = qf(obs, actions)
+    assert q.shape == (3, 8)
+    for k in range(3):
+        x = activation(torch.cat([obs, actions], 1) @ qf.w1[k] + qf.b1[k, 0])
+        x = activation(x @ qf.w2[k] + qf.b2[k, 0])
+        torch.testing.assert_close(q[k], x @ qf.w3[k, 0] + qf.b3[k])
+    assert not torch.equal(qf.w1[0], qf.w1[1])  # drawn independently
+    return obs, actions, q
 
 
 def scalars(run_dir: str) -> dict:

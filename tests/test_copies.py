@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from conftest import OFF_POLICY, ON_POLICY, REPO, SCRIPTS
+from conftest import OFF_POLICY, ON_POLICY, REPO, SCRIPTS, base_of
 
 BANNER = "# Machinery. Nothing below changes what the algorithm computes"
 # what every script keeps below the banner, where it has it
@@ -21,8 +21,10 @@ MACHINERY = {
     "check_finite", "log_scalars", "stop_non_finite", "CudaGraph", "CHECKPOINT", "RESUMABLE_FLAGS", "snapshot", "restore",
     "rng_state", "set_rng_state", "write_checkpoint", "load_checkpoint",
 }  # fmt: skip
-# Definitions that differ between scripts by design, with the groups of scripts whose copies must still agree
-# (a script in no group has its own). Every other definition that several scripts hold must be one copy.
+# Definitions that differ between scripts by design, with the groups of scripts whose copies must still agree.
+# A script in no group joins its base's group (a fork of TD3 keeps TD3's Actor); one whose copy differs from its
+# base's by design gets a group of its own here, e.g. {"ddpg"}. Every other definition that several scripts hold
+# must be one copy.
 BY_DESIGN = {
     "Args": [],
     "main": [],
@@ -36,7 +38,7 @@ BY_DESIGN = {
     "update_actor": [],
     # `members` exists where an update picks critics (TD3's actor: the first; REDQ's target: a random subset);
     # OPARL's critics are the authors' release's (SiLU, truncated-normal init)
-    "QEnsemble": [{"td3", "redq"}],
+    "QEnsemble": [{"td3", "redq"}, {"sac"}, {"oparl"}],
     # --cudagraphs exists in the off-policy scripts only
     "check_finite": [set(OFF_POLICY), set(ON_POLICY)],
     "stop_non_finite": [set(OFF_POLICY), set(ON_POLICY)],
@@ -72,15 +74,43 @@ DEFINITIONS = {script: top_level(script) for script in SCRIPTS}
 SHARED = sorted({name for defs in DEFINITIONS.values() for name in defs if sum(name in d for d in DEFINITIONS.values()) > 1})
 
 
+def groups(name: str, holders: set) -> list:
+    """The groups of scripts whose copies of `name` must agree: BY_DESIGN's, each script in none of them joining
+    the group of its nearest base that is in one; all holders, for a definition BY_DESIGN does not name."""
+    if name not in BY_DESIGN:
+        return [holders]
+    declared = [set(group) for group in BY_DESIGN[name]]
+    for script in sorted(holders):
+        base = script
+        while base is not None and not any(base in group for group in declared):
+            base = base_of(base)
+        for group in declared:
+            if base in group:
+                group.add(script)
+    return declared
+
+
 @pytest.mark.parametrize("name", SHARED)
 def test_shared_definitions_are_identical_copies(name):
     holders = {script for script in SCRIPTS if name in DEFINITIONS[script]}
-    for group in BY_DESIGN.get(name, [holders]):
+    for group in groups(name, holders):
         members = [script for script in SCRIPTS if script in group & holders]
         for script in members[1:]:
             first, other = DEFINITIONS[members[0]][name], DEFINITIONS[script][name]
             diff = "".join(difflib.unified_diff(first.splitlines(True), other.splitlines(True), members[0], script))
-            assert first == other, f"{name} differs between {members[0]} and {script} (copy the change to both):\n{diff}"
+            assert first == other, (
+                f"{name} differs between {members[0]} and {script}: copy the change to both, or, if one differs by "
+                f"design, give it a group of its own under {name!r} in BY_DESIGN, tests/test_copies.py:\n{diff}"
+            )
+
+
+def test_every_script_with_a_base_names_it_and_the_roots_are_cleanrls():
+    roots = [script for script in SCRIPTS if base_of(script) is None]
+    assert set(roots) <= {"td3", "ppo"}, (
+        f"{roots}: a script copied from another names it in its header, as `diff td3_continuous_action.py "
+        "ddpg_continuous_action.py` (docs/forking.md)"
+    )
+    assert all(base_of(script) in SCRIPTS for script in SCRIPTS if base_of(script)), "a header names a missing base"
 
 
 def test_every_difference_by_design_names_a_shared_definition():
@@ -113,7 +143,11 @@ def test_the_diff_sizes_in_the_docs_are_the_scripts():
         pytest.skip("no diff program here")
     table = open(os.path.join(REPO, "docs", "baselines.md")).read()
     rows = re.findall(r"^\| `(\w+)_continuous_action\.py` \| (\w+) \| (\d+) lines \|", table, re.M)
-    assert len(rows) == 5, "five scripts with a base in docs/baselines.md's table"
+    with_base = {script: base_of(script) for script in SCRIPTS if base_of(script)}
+    assert {script: base.lower() for script, base, _ in rows} == with_base, (
+        "docs/baselines.md's table has a row `| `{script}_continuous_action.py` | {BASE} | {N} lines | ...` for every "
+        f"script with a base: {with_base}"
+    )
     for script, base, documented in rows:
         script_path, base_path = (os.path.join(REPO, f"{name.lower()}_continuous_action.py") for name in (script, base))
         diff = subprocess.run(["diff", base_path, script_path], capture_output=True, text=True).stdout

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import oparl_continuous_action as oparl
-from conftest import scalars, small_args
+from conftest import assert_ensemble_is_independent_mlps, scalars, small_args
 
 OBS_DIM, ACTION_DIM = 3, 2
 SPACE = gym.spaces.Box(-2.0, 2.0, (ACTION_DIM,), np.float32)
@@ -52,16 +52,9 @@ def test_td_target_noise_is_clipped_scaled_and_kept_in_bounds():
 
 def test_q_ensemble_members_are_independent_mlps_with_the_styles_activation():
     torch.manual_seed(0)
-    for style in ("release", "td3"):
+    for style, activation in (("release", torch.nn.functional.silu), ("td3", torch.nn.functional.relu)):
         qf = oparl.QEnsemble(OBS_DIM, ACTION_DIM, num_q=3, style=style)
-        obs, actions = torch.randn(8, OBS_DIM), torch.randn(8, ACTION_DIM)
-        q = qf(obs, actions)
-        assert q.shape == (3, 8)
-        for k in range(3):
-            x = qf.activation(torch.cat([obs, actions], 1) @ qf.w1[k] + qf.b1[k, 0])
-            x = qf.activation(x @ qf.w2[k] + qf.b2[k, 0])
-            torch.testing.assert_close(q[k], x @ qf.w3[k, 0] + qf.b3[k])
-        assert not torch.equal(qf.w1[0], qf.w1[1])
+        assert_ensemble_is_independent_mlps(qf, OBS_DIM, ACTION_DIM, activation)
 
 
 def make_actors():

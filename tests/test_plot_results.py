@@ -280,15 +280,19 @@ def test_selection_shapes_the_figures_but_the_csvs_keep_every_run(sweep, tmp_pat
     assert not os.path.exists(os.path.join(out, "td3_final_returns.csv"))
 
 
-def test_each_paper_system_keeps_its_colour_and_other_names_take_the_free_ones():
+def test_each_paper_system_keeps_its_colour_and_other_names_keep_one_of_their_own():
     assert pr.colors_of(["oparl", "rnd", "ebd"]) == {"oparl": "C0", "rnd": "C4", "ebd": "C5"}
     assert pr.colors_of(["ebd", "ppo", "td3"]) == {"ebd": "C5", "ppo": "C3", "td3": "C1"}
-    # an ablation figure: OPARL keeps C0, its variants take C1, C2, ... in order
-    assert pr.colors_of(["oparl", "oparl_optimistic_only", "oparl_two_critics"]) == {
-        "oparl": "C0",
-        "oparl_optimistic_only": "C1",
-        "oparl_two_critics": "C2",
-    }
+    # a new script or a variant: the same colour in every figure, none of the paper systems'
+    alone = pr.colors_of(["ddpg"])["ddpg"]
+    assert alone not in pr.PAPER_COLORS.values()
+    assert pr.colors_of(["oparl", "td3", "sac", "ddpg"])["ddpg"] == alone == pr.colors_of(["ppo", "ddpg", "rnd"])["ddpg"]
+    variants = ["oparl_optimistic_only", "oparl_pessimistic_only", "oparl_two_critics"]
+    ablation = pr.colors_of(["oparl", *variants])
+    assert len(set(ablation.values())) == 4 and ablation["oparl"] == "C0"
+    assert all(pr.colors_of(["oparl", v])[v] == ablation[v] for v in variants)
+    many = pr.colors_of([f"variant_{i}" for i in range(len(pr.OTHER_COLORS))])
+    assert len(set(many.values())) == len(pr.OTHER_COLORS)  # two names never share a colour while one is free
 
 
 def test_table_lists_every_final_return_per_seed(sweep, tmp_path):

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import sac_continuous_action as sac
-from conftest import small_args
+from conftest import assert_ensemble_is_independent_mlps, small_args
 
 OBS_DIM = 3
 SPACE = gym.spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 4.0], np.float32))
@@ -157,16 +157,7 @@ def test_autotune_off_keeps_alpha_fixed(tmp_path, monkeypatch):
 
 
 def test_q_ensemble_members_are_independent_relu_mlps():
-    torch.manual_seed(0)
-    qf = sac.QEnsemble(OBS_DIM, 2, num_q=3)
-    obs, actions = torch.randn(8, OBS_DIM), torch.randn(8, 2)
-    q = qf(obs, actions)
-    assert q.shape == (3, 8)
-    for k in range(3):
-        x = torch.relu(torch.cat([obs, actions], 1) @ qf.w1[k] + qf.b1[k, 0])
-        x = torch.relu(x @ qf.w2[k] + qf.b2[k, 0])
-        torch.testing.assert_close(q[k], x @ qf.w3[k, 0] + qf.b3[k])
-    assert not torch.equal(qf.w1[0], qf.w1[1])
+    assert_ensemble_is_independent_mlps(sac.QEnsemble(OBS_DIM, 2, num_q=3), OBS_DIM, 2, torch.relu)
 
 
 def test_actor_loss_is_alpha_log_pi_minus_the_min_over_critics():

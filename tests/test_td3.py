@@ -7,6 +7,7 @@ import torch
 import torch.nn.functional as F
 
 import td3_continuous_action as td3
+from conftest import assert_ensemble_is_independent_mlps
 
 OBS_DIM, ACTION_DIM = 4, 2
 SPACE = gym.spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 4.0], np.float32))
@@ -41,16 +42,8 @@ def test_replay_buffer_overwrites_the_oldest_rows_when_full():
 
 
 def test_q_ensemble_members_are_independent_mlps():
-    torch.manual_seed(0)
     qf = td3.QEnsemble(OBS_DIM, ACTION_DIM, num_q=3)
-    obs, actions = torch.randn(8, OBS_DIM), torch.randn(8, ACTION_DIM)
-    q = qf(obs, actions)
-    assert q.shape == (3, 8)
-    for k in range(3):
-        x = torch.cat([obs, actions], 1)
-        x = F.relu(x @ qf.w1[k] + qf.b1[k, 0])
-        x = F.relu(x @ qf.w2[k] + qf.b2[k, 0])
-        torch.testing.assert_close(q[k], x @ qf.w3[k, 0] + qf.b3[k])
+    obs, actions, q = assert_ensemble_is_independent_mlps(qf, OBS_DIM, ACTION_DIM, F.relu)
     torch.testing.assert_close(qf(obs, actions, members=slice(0, 1)), q[:1])
 
 

@@ -10,7 +10,7 @@ import os
 import pytest
 import torch
 
-from conftest import SCRIPTS, load, small_args
+from conftest import SCRIPTS, declared, load, small_args
 
 
 class Spy:
@@ -35,6 +35,7 @@ class Spy:
 
 # {script: {function: {parameter: the key under which main returns the object it must be}}}; a list of keys for a
 # parameter that takes a list of networks. Every listed function must be called, and every call must match.
+# A script without an entry is held to its base's (a fork of TD3 to TD3's) until it declares its own here.
 WIRING = {
     "td3": {
         "noisy_action": {"actor": "actor"},
@@ -94,26 +95,47 @@ WIRING = {
     },
 }
 # the key of the network that acts in evaluation and is saved as "actor" in the --save-model file
-EVALUATED = {"oparl": "pessimistic_actor", "ppo": "agent", "rnd": "agent", "ebd": "agent"}
+EVALUATED = {"oparl": "pessimistic_actor", "ppo": "agent"}  # RND and EBD inherit PPO's
 
 
 def spied_run(script, tmp_path, monkeypatch, **overrides):
     monkeypatch.chdir(tmp_path)
     module = load(script)
-    spy = Spy(module, WIRING[script], monkeypatch)
+    spy = Spy(module, declared(WIRING, script), monkeypatch)
     defaults = dict(env_id="Pendulum-v1", total_timesteps=600, learning_starts=300, batch_size=32, eval_frequency=300)
     result = module.main(small_args(module, **{**defaults, "save_model": True, "run_name": "wired", **overrides}))
     return spy, result
 
 
+@pytest.fixture(scope="module")
+def spied(tmp_path_factory):
+    """One spied run per script, shared by the tests that read it (each script's tests share an xdist group)."""
+    cache = {}
+
+    def get(script):
+        if script not in cache:
+            cwd = tmp_path_factory.mktemp(script)
+            with pytest.MonkeyPatch.context() as monkeypatch:
+                spy, result = spied_run(script, cwd, monkeypatch)
+            cache[script] = spy, {**result, "run_dir": os.path.join(cwd, result["run_dir"])}
+        return cache[script]
+
+    return get
+
+
+SPIED = [pytest.param(s, marks=pytest.mark.xdist_group(f"wiring-{s}"), id=s) for s in SCRIPTS]
+
+
 def test_every_script_has_its_wiring_pinned():
-    assert set(WIRING) == set(SCRIPTS)
+    missing = [s for s in SCRIPTS if declared(WIRING, s) is None]
+    assert not missing, f"declare what main wires together for {missing} in WIRING, tests/test_wiring.py"
+    assert set(WIRING) <= set(SCRIPTS), "WIRING names a script that does not exist"
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_main_hands_each_function_the_networks_it_must(script, tmp_path, monkeypatch):
-    spy, result = spied_run(script, tmp_path, monkeypatch)
-    for function, expected in WIRING[script].items():
+@pytest.mark.parametrize("script", SPIED)
+def test_main_hands_each_function_the_networks_it_must(script, spied):
+    spy, result = spied(script)
+    for function, expected in declared(WIRING, script).items():
         calls = spy.of(function)
         assert calls, f"main never called {function}"
         for arguments in calls:
@@ -125,10 +147,10 @@ def test_main_hands_each_function_the_networks_it_must(script, tmp_path, monkeyp
                     pytest.fail(f"{function}({parameter}=...) got {names}, not {key}")
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_the_evaluated_actor_is_the_saved_actor(script, tmp_path, monkeypatch):
-    spy, result = spied_run(script, tmp_path, monkeypatch)
-    evaluated = result[EVALUATED.get(script, "actor")]
+@pytest.mark.parametrize("script", SPIED)
+def test_the_evaluated_actor_is_the_saved_actor(script, spied):
+    spy, result = spied(script)
+    evaluated = result[declared(EVALUATED, script) or "actor"]
     assert [step for step, _ in result["eval_returns"]] == [0, 300, 600]
     parameter = "actor" if "actor" in spy.of("evaluate")[0] else "agent"
     assert len(spy.of("evaluate")) == 3 and all(call[parameter] is evaluated for call in spy.of("evaluate"))
@@ -155,9 +177,9 @@ def test_oparl_acts_with_the_optimistic_actor_on_exactly_its_steps(ratio, tmp_pa
         assert expected[:4] == ["noisy_action", "optimistic_action", "noisy_action", "optimistic_action"]
 
 
-@pytest.mark.parametrize("script", ["sac", "redq"])
-def test_alpha_is_one_tensor_that_the_alpha_update_moves(script, tmp_path, monkeypatch):
-    spy, result = spied_run(script, tmp_path, monkeypatch)
+@pytest.mark.parametrize("script", [s for s in SPIED if s.values[0] in ("sac", "redq")])
+def test_alpha_is_one_tensor_that_the_alpha_update_moves(script, spied):
+    spy, result = spied(script)
     alphas = {id(call["alpha"]) for name in ("update_critic", "update_actor") for call in spy.of(name)}
     assert len(alphas) == 1, "the critic and actor updates read one alpha tensor, updated in place"
     log_alpha = result["a_optimizer"].param_groups[0]["params"][0]

@@ -13,6 +13,7 @@ say them when the names do not. --capture-video records the first episode to --v
 """
 
 import argparse
+import glob
 import importlib
 import os
 import sys
@@ -20,8 +21,10 @@ import sys
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the training scripts
-ALGOS = ("oparl", "td3", "sac", "redq", "ppo", "rnd", "ebd")
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)  # the training scripts
+# every {algo}_continuous_action.py beside this folder, a new one included
+ALGOS = sorted(os.path.basename(p).removesuffix("_continuous_action.py") for p in glob.glob(f"{REPO}/*_continuous_action.py"))
 
 
 def fail(message: str):
