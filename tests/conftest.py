@@ -28,19 +28,29 @@ ON_POLICY = [s for s in SCRIPTS if s not in OFF_POLICY]  # PPO and the explorati
 
 
 def base_of(script: str) -> Optional[str]:
-    """The script a script was copied from, as its header names it (`diff td3_continuous_action.py
-    oparl_continuous_action.py`); None for a script copied from CleanRL (td3, ppo)."""
-    header = " ".join(line.lstrip("# ") for line in source(script).splitlines() if line.startswith("#"))
-    found = re.search(rf"`diff (\w+)_continuous_action\.py {script}_continuous_action\.py`", header)
-    return found.group(1) if found else None
+    """The script a script was copied from, as its header (the comment lines it starts with) names it:
+    `diff td3_continuous_action.py oparl_continuous_action.py`; None for a script copied from CleanRL (td3, ppo)."""
+    lines = source(script).splitlines()
+    header = " ".join(
+        line.lstrip("# ") for line in lines[: next(i for i, line in enumerate(lines) if not line.startswith("#"))]
+    )
+    found = re.search(rf"`diff\s+(\w+)_continuous_action\.py\s+{script}_continuous_action\.py`", header)
+    return found.group(1) if found and found.group(1) != script else None
+
+
+def ancestry(script: str) -> list:
+    """The script, its base, its base's base, ... (a chain that loops back stops there)."""
+    chain = []
+    while script is not None and script not in chain:
+        chain.append(script)
+        script = base_of(script) if os.path.isfile(os.path.join(REPO, f"{script}_continuous_action.py")) else None
+    return chain
 
 
 def declared(table: dict, script: str):
-    """A per-script test setting: the script's own entry, else its base's (a fork is tested as its base
+    """A per-script test setting: the script's own entry, else its nearest base's (a fork is tested as its base
     until it declares otherwise), else None."""
-    while script is not None and script not in table:
-        script = base_of(script)
-    return table.get(script)
+    return next((table[s] for s in ancestry(script) if s in table), None)
 
 
 # what keeps each script's test runs short, beyond fewer steps
@@ -61,7 +71,8 @@ def script_command(script: str, *flags) -> list:
 
 def critic_lr_flag(script: str) -> str:
     """The flag that sets a script's critic learning rate (e.g. to 1e30, to make a loss non-finite)."""
-    return "--q-lr" if script in ("sac", "redq") else "--learning-rate"
+    fields = {f.name for f in dataclasses.fields(load(script).Args)}
+    return "--q-lr" if "q_lr" in fields else "--learning-rate"
 
 
 def load(short_name: str):

@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from conftest import OFF_POLICY, ON_POLICY, REPO, SCRIPTS, base_of
+from conftest import OFF_POLICY, ON_POLICY, REPO, SCRIPTS, ancestry, base_of
 
 BANNER = "# Machinery. Nothing below changes what the algorithm computes"
 # what every script keeps below the banner, where it has it
@@ -22,9 +22,9 @@ MACHINERY = {
     "rng_state", "set_rng_state", "write_checkpoint", "load_checkpoint",
 }  # fmt: skip
 # Definitions that differ between scripts by design, with the groups of scripts whose copies must still agree.
-# A script in no group joins its base's group (a fork of TD3 keeps TD3's Actor); one whose copy differs from its
-# base's by design gets a group of its own here, e.g. {"ddpg"}. Every other definition that several scripts hold
-# must be one copy.
+# A script in no group joins the group of its nearest base that is in one (a fork of TD3 keeps TD3's Actor); one
+# whose copy differs from its base's by design gets a group of its own here, e.g. {"ddpg"}. An empty list: every
+# script has its own (nothing compared). Every definition not named here must be one copy in all scripts.
 BY_DESIGN = {
     "Args": [],
     "main": [],
@@ -44,9 +44,9 @@ BY_DESIGN = {
     "stop_non_finite": [set(OFF_POLICY), set(ON_POLICY)],
     "RESUMABLE_FLAGS": [set(OFF_POLICY), set(ON_POLICY)],
     # RND and EBD add a second value head, batch statistics and intrinsic fields to PPO's
-    "Agent": [{"rnd", "ebd"}],
+    "Agent": [{"rnd", "ebd"}, {"ppo"}],
     "RunningMeanStd": [{"rnd", "ebd"}],
-    "ppo_loss": [{"rnd", "ebd"}],
+    "ppo_loss": [{"rnd", "ebd"}, {"ppo"}],
     "Rollout": [],
     "update_policy": [],
 }
@@ -81,12 +81,9 @@ def groups(name: str, holders: set) -> list:
         return [holders]
     declared = [set(group) for group in BY_DESIGN[name]]
     for script in sorted(holders):
-        base = script
-        while base is not None and not any(base in group for group in declared):
-            base = base_of(base)
-        for group in declared:
-            if base in group:
-                group.add(script)
+        nearest = next((group for s in ancestry(script) for group in declared if s in group), None)
+        if nearest is not None:
+            nearest.add(script)
     return declared
 
 

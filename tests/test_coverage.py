@@ -6,7 +6,7 @@ table, when a script has neither."""
 import glob
 import os
 
-from conftest import OFF_POLICY, ON_POLICY, REPO, SCRIPTS, base_of
+from conftest import OFF_POLICY, ON_POLICY, REPO, SCRIPTS, ancestry
 from test_end_to_end import EXTRA_TAGS
 from test_learning import BUDGETS
 from test_reliability import KILL_CASES
@@ -15,9 +15,7 @@ from test_wiring import WIRING
 
 def entry_holder(table: dict, script: str):
     """The script whose entry in `table` applies to `script`: itself or its nearest base; None if neither has one."""
-    while script is not None and script not in table:
-        script = base_of(script)
-    return script
+    return next((s for s in ancestry(script) if s in table), None)
 
 
 def test_the_suite_finds_every_script_on_disk():

@@ -10,7 +10,18 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import OFF_POLICY, ON_POLICY, SCRIPTS, cli_flags, critic_lr_flag, load, needs_cuda, scalars, script_command
+from conftest import (
+    OFF_POLICY,
+    ON_POLICY,
+    SCRIPTS,
+    cli_flags,
+    critic_lr_flag,
+    declared,
+    load,
+    needs_cuda,
+    scalars,
+    script_command,
+)
 
 
 # (total steps, first step of learning, checkpoint frequency) of the kill-and-resume runs, by the phase in which the
@@ -283,7 +294,8 @@ def test_non_finite_loss_stops_with_the_step_and_the_last_good_state(script, tmp
     assert all(torch.isfinite(t).all() for net in state["nets"].values() for t in net.values())
 
 
-# (flags, part of the message); the off-policy scripts share OFF_POLICY_BAD_INPUTS, each adds its own
+# (flags, part of the message); the off-policy scripts share OFF_POLICY_BAD_INPUTS, each adds its own (a script not
+# in EXTRA_BAD_INPUTS is held to its base's entry)
 BAD_INPUTS = [
     (["--total-timesteps", "0"], "--total-timesteps must be > 0"),
     (["--gamma", "1.5"], "--gamma must be in [0, 1]"),
@@ -367,7 +379,9 @@ EXTRA_BAD_INPUTS = {
 CASES = [
     (s, flags, message)
     for s in SCRIPTS
-    for flags, message in BAD_INPUTS + (OFF_POLICY_BAD_INPUTS if s in OFF_POLICY else []) + EXTRA_BAD_INPUTS.get(s, [])
+    for flags, message in BAD_INPUTS
+    + (OFF_POLICY_BAD_INPUTS if s in OFF_POLICY else [])
+    + (declared(EXTRA_BAD_INPUTS, s) or [])
 ]
 
 
