@@ -1,4 +1,5 @@
 import dataclasses
+import functools
 import glob
 import importlib
 import os
@@ -27,6 +28,7 @@ OFF_POLICY = [s for s in SCRIPTS if "class ReplayBuffer" in source(s)]  # the sc
 ON_POLICY = [s for s in SCRIPTS if s not in OFF_POLICY]  # PPO and the exploration methods built on it
 
 
+@functools.lru_cache(maxsize=None)
 def base_of(script: str) -> Optional[str]:
     """The script a script was copied from, as its header (the comment lines it starts with) names it:
     `diff td3_continuous_action.py oparl_continuous_action.py`; None for a script copied from CleanRL (td3, ppo)."""
@@ -43,7 +45,7 @@ def ancestry(script: str) -> list:
     chain = []
     while script is not None and script not in chain:
         chain.append(script)
-        script = base_of(script) if os.path.isfile(os.path.join(REPO, f"{script}_continuous_action.py")) else None
+        script = base_of(script) if script in SCRIPTS else None  # a header may name a script that is not there
     return chain
 
 

@@ -33,9 +33,14 @@ PHASES = {"learning": (1500, 500, 500), "random": (2000, 1200, 1000)}
 ON_POLICY_STEPS = 3000
 
 
+def phase_of(script, phase="learning") -> tuple:
+    """(total steps, first step of learning, checkpoint frequency) of a kill-and-resume run of `script`."""
+    total, learning_starts, checkpoint_frequency = PHASES[phase]
+    return (ON_POLICY_STEPS if script in ON_POLICY else total), learning_starts, checkpoint_frequency
+
+
 def short(script, phase="learning"):
-    total, learning_starts, _ = PHASES[phase]
-    total = ON_POLICY_STEPS if script in ON_POLICY else total
+    total, learning_starts, _ = phase_of(script, phase)
     return cli_flags(
         script, total_timesteps=total, learning_starts=learning_starts, batch_size=64, eval_frequency=500, eval_episodes=1
     )
@@ -75,8 +80,7 @@ GRAPH_KILL_CASES = [
     [pytest.param(s, e, p, None, id=f"{s}-{e}-{p}") for s, e, p in KILL_CASES] + GRAPH_KILL_CASES,
 )
 def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, env_id, phase, extra, tmp_path):
-    total, learning_starts, checkpoint_frequency = PHASES[phase]
-    total = ON_POLICY_STEPS if script in ON_POLICY else total
+    total, learning_starts, checkpoint_frequency = phase_of(script, phase)
     flags = ["--env-id", env_id, *short(script, phase), "--save-model", *([extra] if extra else [])]
     full = start(script, tmp_path, *flags, "--run-name", "full")
     killed = start(script, tmp_path, *flags, "--run-name", "killed", "--checkpoint-frequency", str(checkpoint_frequency))
