@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Sweep algorithms x tasks x seeds, here (--workers runs at a time, one torch thread each) or as one
-# Slurm job array (--slurm). Re-running the same sweep skips finished runs and resumes the others
-# from their checkpoints. Run `bash benchmark.sh --help` for the flags.
+# Slurm job array (--slurm), a process per run or per N consecutive seeds (--seeds-per-process N).
+# Re-running the same sweep skips finished runs and resumes the others from their checkpoints. Run
+# `bash benchmark.sh --help` for the flags.
 set -uo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -23,13 +24,15 @@ Usage: bash benchmark.sh [flags] [-- flags passed to every script]
   --env-ids E [E ...]       environment ids (default: the paper's 18 DeepMind Control tasks)
   --suite dmc|mujoco        the paper's 18 DMC tasks or its 4 MuJoCo tasks (Ant, Hopper, Humanoid, Walker2d -v4)
   --seeds S [S ...]         seeds (default: 1 2 3 4 5 6 7 8 9 10)
+  --seeds-per-process N     train up to N consecutive seeds of a task and algorithm in one process, the script's
+                            --num-seeds (oparl td3 sac; default: 1, a process per run)
   --total-timesteps N       steps per run (default: each script's default, 1000000)
   --workers N               runs at a time here, one torch thread each (default: number of cores, $(nproc))
   --checkpoint-frequency N  checkpoint every N steps, so an interrupted run resumes (default: 10000)
   --skip-listed FILE        runs named in FILE (one name a line, e.g. results/finished_runs.txt) count as
                             finished: how a sweep continues on a machine that lacks their runs/ folders
   --dry-run                 print the commands (or the Slurm job script) and run nothing
-  --slurm                   submit the sweep as one Slurm job array, one run per array task
+  --slurm                   submit the sweep as one Slurm job array, one run (one process) per array task
   --slurm-partition P       sbatch --partition
   --slurm-time T            sbatch --time (e.g. 2-00:00:00)
   --slurm-cpus-per-task N   sbatch --cpus-per-task (default: 1)
@@ -42,6 +45,12 @@ runs/{name}/DONE and skipped next time; an unfinished one resumes from runs/{nam
 starts again if it had none. A run that another sweep is running (it holds logs/{name}.lock) is
 left alone, so two sweeps over overlapping lists can share one folder. One failing run doesn't stop
 the others; the summary lists failures and the exit status is non-zero if any run failed.
+
+With --seeds-per-process N, each task and algorithm's unfinished seeds are split into groups of at most
+N consecutive seeds (a gap starts a new group), a process each. The runs keep their names and folders;
+a group's output goes to its first run's log, and every run's log gets the line 'seeds per process: <n>
+(output in logs/<first run>.log)'. Skipping, resuming (from the first run's checkpoint) and locks are
+per group; the counts are per run. Resume a sweep with the N it started with.
 
 Example: bash benchmark.sh --algos td3 oparl --env-ids dm_control/cartpole-balance-v0 --seeds 1 2 \\
            --workers 2 --total-timesteps 2000 -- --learning-starts 1000
@@ -65,40 +74,71 @@ run_name() {  # algo env seed total extra...
   printf '%s' "$name"
 }
 
-# One run, skipped if finished, resumed if it has a checkpoint. Prints one word: done, skipped, busy, failed.
-run_one() {  # algo env seed total checkpoint_frequency [-- extra...]
+# Whether a run counts as finished: marked DONE, or named in --skip-listed's file.
+finished() { [[ -f runs/$1/DONE ]] || { [[ -n ${SKIP_LISTED:-} ]] && grep -qxF "$1" "$SKIP_LISTED"; }; }
+
+# The run names of a process's seeds: SEED alone, or FIRST-LAST for the seeds a --seeds-per-process group trains.
+group_names() {  # array algo env seed|first-last total extra...
+  local -n group_out=$1
+  local algo=$2 env=$3 seed=$4 total=$5 s; shift 5
+  if [[ $seed != *-* ]]; then group_out=("$(run_name "$algo" "$env" "$seed" "$total" "$@")"); return; fi
+  group_out=()
+  for ((s = ${seed%-*}; s <= ${seed#*-}; s++)); do group_out+=("$(run_name "$algo" "$env" "$s" "$total" "$@")"); done
+}
+
+# One run, or one process training the consecutive seeds FIRST-LAST (--seeds-per-process), skipped if finished,
+# resumed if it has a checkpoint (a group: its first run's, which names the others). Prints one word: done,
+# skipped, busy, failed.
+run_one() {  # algo env seed|first-last total checkpoint_frequency [-- extra...]
   local algo=$1 env=$2 seed=$3 total=$4 ckpt=$5; shift 5
   [[ ${1:-} == "--" ]] && shift
-  local name dir log
-  name="$(run_name "$algo" "$env" "$seed" "$total" "$@")"
-  dir="runs/$name" log="logs/$name.log"
-  if [[ -f $dir/DONE ]] || { [[ -n ${SKIP_LISTED:-} ]] && grep -qxF "$name" "$SKIP_LISTED"; }; then echo skipped; return 0; fi
+  local names=() name unfinished=()
+  group_names names "$algo" "$env" "$seed" "$total" "$@"
+  for name in "${names[@]}"; do finished "$name" || unfinished+=("$name"); done
+  if ((${#unfinished[@]} == 0)); then echo skipped; return 0; fi
   mkdir -p logs
   # one process per run: a second sweep over the same folder (or a re-submitted Slurm task) leaves a
   # run alone while another holds its lock; the training process inherits the lock and keeps it
-  # (util-linux's flock; without it runs are not locked)
+  # (util-linux's flock; without it runs are not locked). A group takes every one of its runs' locks.
   if command -v flock >/dev/null; then
     local lock
-    exec {lock}>>"logs/$name.lock"
-    if ! flock -n "$lock"; then echo busy; return 0; fi
+    for name in "${names[@]}"; do
+      exec {lock}>>"logs/$name.lock"
+      if ! flock -n "$lock"; then echo busy; return 0; fi
+    done
+  fi
+  local dir="runs/${names[0]}" log="logs/${names[0]}.log"
+  if ((${#unfinished[@]} < ${#names[@]})); then  # another sweep finished some of them after this one grouped them
+    echo "error: runs of this process finished elsewhere meanwhile; run the sweep again to group the others anew" >>"$log"
+    echo failed
+    return 0
   fi
   local resume=()
   if [[ -f $dir/checkpoint.pt ]]; then
     resume=(--resume "$dir")
   else
-    rm -rf "$dir"  # a run that died before its first checkpoint starts again
+    for name in "${names[@]}"; do rm -rf "runs/$name"; done  # a run that died before its first checkpoint starts again
   fi
   local steps=()
   [[ $total != default ]] && steps=(--total-timesteps "$total")
+  # several seeds: --num-seeds, and the run name with {seed} where each seed's number goes
+  local seed_flags=() template=${names[0]}
+  if ((${#names[@]} > 1)); then
+    seed_flags=(--num-seeds "${#names[@]}")
+    template="$(run_name "$algo" "$env" "{seed}" "$total" "$@")"
+  fi
   # which float32 matmul kernels this part of the run uses (tools/mkl_avx512.sh preloads its library), for
   # results/mkl_kernels.csv; a resumed run appends a second line
   local kernels=mkl-default
   [[ ${LD_PRELOAD:-} == *libmkl_intel_cpu_true* ]] && kernels=mkl-avx512
-  echo "float32 kernels: $kernels" >>"$log"
+  for name in "${names[@]}"; do
+    echo "float32 kernels: $kernels" >>"logs/$name.log"
+    if ((${#names[@]} > 1)); then echo "seeds per process: ${#names[@]} (output in $log)" >>"logs/$name.log"; fi
+  done
   if OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 "${PYTHON:-python}" "$REPO/${algo}_continuous_action.py" \
-      --env-id "$env" --seed "$seed" "${steps[@]}" --run-name "$name" --checkpoint-frequency "$ckpt" "$@" "${resume[@]}" \
-      >>"$log" 2>&1; then
-    touch "$dir/DONE"
+      --env-id "$env" --seed "${seed%-*}" "${seed_flags[@]}" "${steps[@]}" --run-name "$template" --checkpoint-frequency "$ckpt" \
+      "$@" "${resume[@]}" >>"$log" 2>&1; then
+    for name in "${names[@]}"; do touch "runs/$name/DONE"; done
     echo done
   else
     echo failed
@@ -114,6 +154,7 @@ fi
 algos=(oparl td3 sac)
 env_ids=("${PAPER_DMC[@]}")
 seeds=(1 2 3 4 5 6 7 8 9 10)
+seeds_per_process=1
 total=default
 workers=$(nproc)
 checkpoint_frequency=10000
@@ -139,6 +180,7 @@ while (($#)); do
     --algos) shift; values algos "$@"; shift $(count_values "$@") ;;
     --env-ids) shift; values env_ids "$@"; shift $(count_values "$@") ;;
     --seeds) shift; values seeds "$@"; shift $(count_values "$@") ;;
+    --seeds-per-process) need_int "$flag" "${2:-}"; seeds_per_process=$2; shift 2 ;;
     --suite)
       case ${2:-} in
         dmc) env_ids=("${PAPER_DMC[@]}") ;;
@@ -167,21 +209,70 @@ for algo in "${algos[@]}"; do
   [[ -f $REPO/${algo}_continuous_action.py ]] || die "unknown algorithm '$algo': no $REPO/${algo}_continuous_action.py"
 done
 for seed in "${seeds[@]}"; do [[ $seed =~ ^[0-9]+$ ]] || die "seeds must be non-negative integers, got '$seed'"; done
+if ((seeds_per_process > 1)); then
+  for algo in "${algos[@]}"; do
+    grep -q '^ *num_seeds: int' "$REPO/${algo}_continuous_action.py" ||
+      die "--seeds-per-process $seeds_per_process: ${algo}_continuous_action.py has no --num-seeds (one seed per process)"
+  done
+fi
 
 PYTHON="$(command -v "${PYTHON:-python}")" || die "no python on PATH (activate the virtual environment first)"
 export PYTHON
 
-# one line per run: the arguments of run_one
+# one line per run (per process: with --seeds-per-process, a group of runs): the arguments of run_one
 runs=()
-for env in "${env_ids[@]}"; do
-  for seed in "${seeds[@]}"; do
-    for algo in "${algos[@]}"; do
-      runs+=("$(printf '%q ' "$algo" "$env" "$seed" "$total" "$checkpoint_frequency" -- "${extra[@]}")")
+sizes=()           # each line's number of runs
+skipped_before=()  # with --seeds-per-process, the runs found finished while grouping
+if ((seeds_per_process == 1)); then
+  for env in "${env_ids[@]}"; do
+    for seed in "${seeds[@]}"; do
+      for algo in "${algos[@]}"; do
+        runs+=("$(printf '%q ' "$algo" "$env" "$seed" "$total" "$checkpoint_frequency" -- "${extra[@]}")")
+        sizes+=(1)
+      done
     done
   done
-done
+else
+  # each task and algorithm's unfinished seeds, in the given order, in groups of at most N consecutive ones
+  # (written FIRST-LAST; a gap or a seed written with leading zeros starts a new group); the algorithms take
+  # turns, as the seeds do with one per process
+  for env in "${env_ids[@]}"; do
+    declare -A group=()
+    most=0
+    for algo in "${algos[@]}"; do
+      k=-1 first="" last=""
+      for seed in "${seeds[@]}"; do
+        name="$(run_name "$algo" "$env" "$seed" "$total" "${extra[@]}")"
+        if finished "$name"; then skipped_before+=("$name"); continue; fi
+        if ! [[ -n $first && $first == "$((10#$first))" && $seed == "$((10#$last + 1))" ]] ||
+          ((seed - first >= seeds_per_process)); then
+          k=$((k + 1)) first=$seed
+        fi
+        last=$seed
+        group[$algo,$k]=$first
+        [[ $last != "$first" ]] && group[$algo,$k]=$first-$last
+      done
+      ((k + 1 > most)) && most=$((k + 1))
+    done
+    for ((k = 0; k < most; k++)); do
+      for algo in "${algos[@]}"; do
+        [[ -n ${group[$algo,$k]:-} ]] || continue
+        seed=${group[$algo,$k]}
+        runs+=("$(printf '%q ' "$algo" "$env" "$seed" "$total" "$checkpoint_frequency" -- "${extra[@]}")")
+        if [[ $seed == *-* ]]; then sizes+=($((${seed#*-} - ${seed%-*} + 1))); else sizes+=(1); fi
+      done
+    done
+    unset group
+  done
+fi
 n=${#runs[@]}
+n_runs=0
+for size in "${sizes[@]}"; do n_runs=$((n_runs + size)); done
 
+if ((slurm && n == 0)); then
+  echo "nothing to submit: the sweep's ${#skipped_before[@]} runs are all finished"
+  exit 0
+fi
 if ((slurm)); then
   sweep_dir="slurm/$(date +%Y%m%d-%H%M%S)-$$"
   script="#!/usr/bin/env bash
@@ -206,7 +297,12 @@ eval \"bash $(printf '%q' "$REPO/benchmark.sh") --run-one \$args\""
   printf '%s\n' "${runs[@]}" >"$sweep_dir/runs.txt"
   echo "$script" >"$sweep_dir/job.sh"
   sbatch "$sweep_dir/job.sh" || die "sbatch failed"
-  echo "submitted $n runs as one array job ($sweep_dir/job.sh); each run's output: logs/<run name>.log"
+  if ((seeds_per_process == 1)); then
+    echo "submitted $n runs as one array job ($sweep_dir/job.sh); each run's output: logs/<run name>.log"
+  else
+    echo "submitted $n_runs runs in $n processes as one array job ($sweep_dir/job.sh), ${#skipped_before[@]} finished" \
+      "before; each process's output: logs/<its first run's name>.log"
+  fi
   exit 0
 fi
 
@@ -220,33 +316,42 @@ status_dir="$(mktemp -d)"
 trap 'rm -rf "$status_dir"' EXIT
 started=0
 last_progress=""
-progress() {  # prints when the counts changed
-  local finished line
-  finished=$(find "$status_dir" -name '*.status' | wc -l)
-  line="runs: $finished finished, $((started - finished)) running, $((n - started)) left"
+progress() {  # prints when the counts (of runs, not processes) changed
+  local finished=0 line status i
+  for status in "$status_dir"/*.status; do
+    [[ -f $status ]] || continue
+    i=${status##*/}
+    finished=$((finished + sizes[${i%.status}]))
+  done
+  line="runs: $finished finished, $((started - finished)) running, $((n_runs - started)) left"
   [[ $line == "$last_progress" ]] || echo "[$(date +%H:%M:%S)] $line"
   last_progress=$line
 }
 for i in "${!runs[@]}"; do
   while (($(jobs -rp | wc -l) >= workers)); do wait -n; progress; done
   (result=$(eval "run_one ${runs[$i]}"); echo "$result" >"$status_dir/$i.status") &
-  started=$((started + 1))
+  started=$((started + sizes[i]))
   progress
 done
 while (($(jobs -rp | wc -l) > 0)); do wait -n; progress; done
 
-done_runs=() skipped_runs=() busy_runs=() failed_runs=()
+done_runs=() skipped_runs=("${skipped_before[@]}") busy_runs=() failed_runs=()
+declare -A log_of=()  # a run's process's log: its group's first run's
 for i in "${!runs[@]}"; do
   eval "set -- ${runs[$i]}"
-  name="$(run_name "$1" "$2" "$3" "$4" "${@:7}")"
-  case "$(cat "$status_dir/$i.status")" in
-    done) done_runs+=("$name") ;;
-    skipped) skipped_runs+=("$name") ;;
-    busy) busy_runs+=("$name") ;;
-    *) failed_runs+=("$name") ;;
-  esac
+  group_names names "$1" "$2" "$3" "$4" "${@:7}"
+  status=$(cat "$status_dir/$i.status")
+  for name in "${names[@]}"; do
+    log_of[$name]="logs/${names[0]}.log"
+    case $status in
+      done) done_runs+=("$name") ;;
+      skipped) skipped_runs+=("$name") ;;
+      busy) busy_runs+=("$name") ;;
+      *) failed_runs+=("$name") ;;
+    esac
+  done
 done
 echo "summary: ${#done_runs[@]} done, ${#skipped_runs[@]} skipped (finished before), ${#failed_runs[@]} failed"
 for name in "${busy_runs[@]}"; do echo "  left alone, running in another sweep: $name (log: logs/$name.log)"; done
-for name in "${failed_runs[@]}"; do echo "  failed: $name (log: logs/$name.log)"; done
+for name in "${failed_runs[@]}"; do echo "  failed: $name (log: ${log_of[$name]})"; done
 ((${#failed_runs[@]} == 0))

@@ -47,9 +47,11 @@ class Args:
     save_model: bool = False
     """whether to save the actors and critics into the `runs/{run_name}` folder"""
     run_name: Optional[str] = None
-    """name of the run folder under runs/ (default: {env_id}__{exp_name}__{seed}__{unix time})"""
+    """name of the run folder under runs/, with {seed} where the seed's number goes (default: {env_id}__{exp_name}__{seed}__{unix time})"""
+    num_seeds: int = 1
+    """train seeds seed, seed+1, ..., seed+num_seeds-1 side by side in this process, each an ordinary run in its own folder"""
     checkpoint_frequency: int = 0
-    """write `checkpoint.pt` into the run folder at the first episode end after every this many steps, and at the end (0: never)"""
+    """write `checkpoint.pt` into each run folder every this many steps, and at the end (0: never)"""
     resume: Optional[str] = None
     """continue the run in this folder (e.g. runs/{run_name}) from its checkpoint; flags given with it must match the run's"""
 
@@ -101,16 +103,21 @@ class Args:
 
 
 # ALGO LOGIC: initialize agent here:
+# Every network below holds one copy per seed (--num-seeds), stacked along a leading dimension, and takes inputs
+# [num_seeds, batch, features]; nothing in a computation mixes seeds, so each seed is an independent run.
 class QEnsemble(nn.Module):
-    """`num_q` critics concat(obs, action) -> 256 -> 256 -> 1, each layer's weights stacked into one
-    [num_q, in, out] tensor so that one batched matmul evaluates every member."""
+    """`num_q` critics per seed, concat(obs, action) -> 256 -> 256 -> 1, each layer's weights stacked into one
+    [num_seeds * num_q, in, out] tensor (seed after seed) so that one batched matmul evaluates every member."""
 
-    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 5, hidden: int = 256, style: str = "release"):
+    def __init__(
+        self, obs_dim: int, action_dim: int, num_q: int = 5, hidden: int = 256, style: str = "release", num_seeds: int = 1
+    ):
         super().__init__()
         self.activation = F.silu if style == "release" else F.relu
+        self.num_q = num_q
 
         def init(fan_in, *shape, bias=False):
-            p = torch.empty(num_q, *shape)
+            p = torch.empty(num_seeds * num_q, *shape)
             if style == "td3":  # the default init of nn.Linear, drawn independently per member
                 return nn.Parameter(p.uniform_(-(fan_in**-0.5), fan_in**-0.5))
             # the release: zero biases, weights N(0, 1/(2 sqrt(fan_in))) cut at +-2 (absolute, i.e. hardly cut)
@@ -122,22 +129,43 @@ class QEnsemble(nn.Module):
         self.w3, self.b3 = init(hidden, 1, hidden), init(hidden, 1, bias=True)  # the output layer, as rows
 
     def forward(self, obs, actions, detach_params=False):
-        """Q-values [num_q, batch]. `detach_params` lets gradients reach the actions only, which is all an actor
-        loss needs."""
+        """Q-values [num_seeds, num_q, batch] ([num_q, batch] for inputs without the seeds dimension, one seed).
+        `detach_params` lets gradients reach the actions only, which is all an actor loss needs."""
         params = list(self.parameters())
         w1, b1, w2, b2, w3, b3 = [p.detach() for p in params] if detach_params else params
         x = torch.cat([obs, actions], -1)
-        x = self.activation(torch.baddbmm(b1, x.expand(len(w1), -1, -1), w1))
+        seeds, (batch, width) = x.shape[:-2], x.shape[-2:]
+        x = x.reshape(-1, 1, batch, width).expand(-1, len(w1) // math.prod(seeds), -1, -1).reshape(len(w1), batch, width)
+        x = self.activation(torch.baddbmm(b1, x, w1))
         x = self.activation(torch.baddbmm(b2, x, w2))
-        return (x * w3).sum(-1) + b3  # a dot product per member: cheaper than a matmul with one output
+        return ((x * w3).sum(-1) + b3).view(*seeds, -1, batch)  # a dot product per member: cheaper than a matmul
+
+
+class SeedLinear(nn.Module):
+    """nn.Linear once per seed, the seeds' weights stacked: x [num_seeds, ..., in] -> [num_seeds, ..., out] in one
+    batched matmul. Each seed's layer starts as an nn.Linear does."""
+
+    def __init__(self, in_features: int, out_features: int, num_seeds: int = 1):
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(num_seeds, out_features, in_features))
+        self.bias = nn.Parameter(torch.empty(num_seeds, out_features))
+        for weight, bias in zip(self.weight.data, self.bias.data):
+            nn.init.kaiming_uniform_(weight, a=math.sqrt(5))
+            nn.init.uniform_(bias, -1 / math.sqrt(in_features), 1 / math.sqrt(in_features))
+
+    def forward(self, x):
+        if len(self.weight) == 1:  # nn.Linear's own kernel: one seed computes exactly what a single-seed network does
+            return F.linear(x, self.weight[0], self.bias[0])
+        out = torch.baddbmm(self.bias.unsqueeze(1), x.reshape(len(x), -1, x.shape[-1]), self.weight.transpose(1, 2))
+        return out.view(*x.shape[:-1], -1)
 
 
 class Actor(nn.Module):
-    def __init__(self, obs_dim: int, action_space: gym.spaces.Box):
+    def __init__(self, obs_dim: int, action_space: gym.spaces.Box, num_seeds: int = 1):
         super().__init__()
-        self.fc1 = nn.Linear(obs_dim, 256)
-        self.fc2 = nn.Linear(256, 256)
-        self.fc_mu = nn.Linear(256, int(np.prod(action_space.shape)))
+        self.fc1 = SeedLinear(obs_dim, 256, num_seeds)
+        self.fc2 = SeedLinear(256, 256, num_seeds)
+        self.fc_mu = SeedLinear(256, int(np.prod(action_space.shape)), num_seeds)
         # action rescaling
         low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in (action_space.low, action_space.high))
         self.register_buffer("action_scale", (high - low) / 2.0)
@@ -161,39 +189,46 @@ class Batch(NamedTuple):
 
 
 class ReplayBuffer:
-    """Transitions in one preallocated [capacity, fields] tensor: one row per add, one gather per batch."""
+    """Each seed's transitions in one preallocated [num_seeds, capacity, fields] tensor: one row per seed per add, one
+    gather per batch (each seed's batch drawn from its own transitions)."""
 
-    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device):
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device, num_seeds: int = 1):
         self.capacity, self.pos, self.size = capacity, 0, 0
         self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
-        self.storage = torch.zeros((capacity, sum(self.widths)), dtype=torch.float32, device=device)
+        self.storage = torch.zeros((num_seeds, capacity, sum(self.widths)), dtype=torch.float32, device=device)
 
     def add(self, obs, action, next_obs, reward, termination):
-        row = np.concatenate([obs, action, next_obs, [reward, termination]], dtype=np.float32)
-        self.storage[self.pos] = torch.from_numpy(row)
+        """One transition per seed: obs [num_seeds, obs_dim], ..., reward and termination [num_seeds]."""
+        scalars = np.stack([reward, termination], -1)
+        row = np.concatenate([obs, action, next_obs, scalars], -1, dtype=np.float32)
+        self.storage[:, self.pos] = torch.from_numpy(row)
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
     def sample(self, *shape: int) -> Batch:
-        """Transitions drawn uniformly with replacement, as a batch of this shape: `sample(256)` is one
-        batch of 256, `sample(20, 256)` twenty of them stacked (each field [20, 256, width])."""
-        indices = torch.randint(self.size, shape, device=self.storage.device)
-        obs, actions, next_obs, rewards, terminations = self.storage[indices].split(self.widths, dim=-1)
+        """Transitions drawn uniformly with replacement, for each seed a batch of this shape: `sample(256)` gives
+        fields [num_seeds, 256, width], `sample(20, 256)` twenty batches each ([num_seeds, 20, 256, width])."""
+        num_seeds = len(self.storage)
+        indices = torch.randint(self.size, (num_seeds, *shape), device=self.storage.device)
+        seed = torch.arange(num_seeds, device=self.storage.device).view(-1, *[1] * len(shape))
+        obs, actions, next_obs, rewards, terminations = self.storage[seed, indices].split(self.widths, dim=-1)
         return Batch(obs, actions, next_obs, rewards.squeeze(-1), terminations.squeeze(-1))
 
     def state_dict(self) -> dict:
-        return {"rows": self.storage[: self.size].cpu().clone(), "pos": self.pos}
+        return {"rows": self.storage[:, : self.size].cpu().clone(), "pos": self.pos}
 
     def load_state_dict(self, state: dict):
-        self.storage[: len(state["rows"])] = state["rows"].to(self.storage.device)
-        self.size, self.pos = len(state["rows"]), state["pos"]
+        self.storage[:, : state["rows"].shape[1]] = state["rows"].to(self.storage.device)
+        self.size, self.pos = state["rows"].shape[1], state["pos"]
 
 
 @torch.no_grad()
 def noisy_action(obs, actor: Actor, exploration_noise: float) -> torch.Tensor:
-    """The actor's action plus Gaussian noise of std exploration_noise * action_scale, clipped to the bounds."""
+    """Each seed's action, obs [num_seeds, obs_dim] -> [num_seeds, action_dim], plus Gaussian noise of std
+    exploration_noise * action_scale, clipped to the bounds."""
     action = actor(torch.as_tensor(obs, device=actor.action_scale.device))
-    return (action + torch.normal(0, actor.action_scale * exploration_noise)).clamp(actor.action_low, actor.action_high)
+    noise = torch.normal(0, (actor.action_scale * exploration_noise).expand_as(action))
+    return (action + noise).clamp(actor.action_low, actor.action_high)
 
 
 def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Args):
@@ -203,17 +238,17 @@ def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Arg
         clipped_noise = (torch.randn_like(batch.actions) * args.policy_noise).clamp(-args.noise_clip, args.noise_clip)
         next_actions = target_actor(batch.next_observations) + clipped_noise * target_actor.action_scale
         next_actions = next_actions.clamp(target_actor.action_low, target_actor.action_high)
-        min_qf_next_target = qf_target(batch.next_observations, next_actions).min(0).values
+        min_qf_next_target = qf_target(batch.next_observations, next_actions).min(-2).values
         return batch.rewards + (1 - batch.terminations) * args.gamma * min_qf_next_target
 
 
 def update_critic(batch: Batch, qf: QEnsemble, q_optimizer, target_actor: Actor, qf_target: QEnsemble, args: Args):
     next_q_value = td_target(batch, target_actor, qf_target, args)
     qf_a_values = qf(batch.observations, batch.actions)
-    qf_loss = ((qf_a_values - next_q_value) ** 2).mean(1).sum()  # the sum of each critic's MSE
-    check_finite(qf_loss, "qf_loss")
+    qf_loss = ((qf_a_values - next_q_value.unsqueeze(-2)) ** 2).mean(-1).sum(-1)  # per seed, the sum of each critic's MSE
+    check_finite(qf_loss.sum(), "qf_loss")
     q_optimizer.zero_grad()
-    qf_loss.backward()
+    qf_loss.sum().backward()  # a sum over seeds: each seed's weights get their own seed's gradient, unscaled
     q_optimizer.step()
     return qf_loss.detach(), qf_a_values.detach()
 
@@ -224,15 +259,15 @@ def update_actors(
     """The pessimistic actor ascends the min over the ensemble, the optimistic actor the max. Both
     go through one ensemble pass; the critic's weights get no gradient."""
     obs = batch.observations
-    actions = torch.cat([pessimistic_actor(obs), optimistic_actor(obs)])
-    q_pessimistic, q_optimistic = qf(torch.cat([obs, obs]), actions, detach_params=True).chunk(2, dim=1)
-    pessimistic_actor_loss = -q_pessimistic.min(0).values.mean()
-    optimistic_actor_loss = -q_optimistic.max(0).values.mean()
-    check_finite(pessimistic_actor_loss, "pessimistic_actor_loss")
-    check_finite(optimistic_actor_loss, "optimistic_actor_loss")
+    actions = torch.cat([pessimistic_actor(obs), optimistic_actor(obs)], -2)
+    q_pessimistic, q_optimistic = qf(torch.cat([obs, obs], -2), actions, detach_params=True).chunk(2, dim=-1)
+    pessimistic_actor_loss = -q_pessimistic.min(-2).values.mean(-1)  # per seed
+    optimistic_actor_loss = -q_optimistic.max(-2).values.mean(-1)
+    check_finite(pessimistic_actor_loss.sum(), "pessimistic_actor_loss")
+    check_finite(optimistic_actor_loss.sum(), "optimistic_actor_loss")
     pessimistic_optimizer.zero_grad()
     optimistic_optimizer.zero_grad()
-    (pessimistic_actor_loss + optimistic_actor_loss).backward()  # each actor gets only its own loss's gradient
+    (pessimistic_actor_loss + optimistic_actor_loss).sum().backward()  # each actor gets only its own loss's gradient
     pessimistic_optimizer.step()
     optimistic_optimizer.step()
     return pessimistic_actor_loss.detach(), optimistic_actor_loss.detach()
@@ -246,15 +281,16 @@ def is_optimistic_step(global_step: int, optimistic_ratio: float) -> bool:
 
 @torch.no_grad()
 def optimistic_action(obs, optimistic_actor: Actor, qf: QEnsemble, num_candidates: int, exploration_noise: float):
-    """pi_opt(s) + Gaussian noise, drawn num_candidates times; the candidate whose Q-values have the
-    largest std across the ensemble is taken (paper, Setup). One candidate needs no critic pass."""
+    """For each seed (obs [num_seeds, obs_dim]), pi_opt(s) + Gaussian noise, drawn num_candidates times; the candidate
+    whose Q-values have the largest std across the ensemble is taken (paper, Setup). One candidate needs no critic pass."""
     obs = torch.as_tensor(obs, device=optimistic_actor.action_scale.device)
-    candidates = optimistic_actor(obs).expand(num_candidates, -1)
-    candidates = candidates + torch.normal(0, optimistic_actor.action_scale.expand(num_candidates, -1) * exploration_noise)
+    candidates = optimistic_actor(obs).unsqueeze(-2).expand(-1, num_candidates, -1)
+    candidates = candidates + torch.normal(0, optimistic_actor.action_scale.expand_as(candidates) * exploration_noise)
     candidates = candidates.clamp(optimistic_actor.action_low, optimistic_actor.action_high)
     if num_candidates == 1:
-        return candidates[0]
-    return candidates[qf(obs.expand(num_candidates, -1), candidates).std(0).argmax()]
+        return candidates[:, 0]
+    chosen = qf(obs.unsqueeze(-2).expand(-1, num_candidates, -1), candidates).std(-2).argmax(-1)
+    return candidates[torch.arange(len(candidates)), chosen]
 
 
 @torch.no_grad()
@@ -266,32 +302,34 @@ def soft_update(targets: list, sources: list, tau: float):
 
 
 @torch.no_grad()
-def evaluate(actor: Actor, env: gym.Env, num_episodes: int, seed: int) -> np.ndarray:
-    """Undiscounted returns of `num_episodes` episodes of the noiseless actor. The env is re-seeded
-    each time, so every evaluation sees the same start states."""
+def evaluate(actor: Actor, envs: list, num_episodes: int, seeds: list) -> np.ndarray:
+    """Undiscounted returns [num_seeds, num_episodes] of the noiseless actor, each seed's in its own env, stepped side
+    by side. The envs are re-seeded each time, so every evaluation sees the same start states."""
     device = actor.action_scale.device
-    returns = np.zeros(num_episodes)
-    obs, _ = env.reset(seed=seed)
-    for episode in range(num_episodes):
-        if episode > 0:
-            obs, _ = env.reset()
-        done = False
-        while not done:
-            action = actor(torch.as_tensor(obs, device=device)).cpu().numpy()
-            obs, reward, terminated, truncated, _ = env.step(action)
-            returns[episode] += reward
-            done = terminated or truncated
+    returns = np.zeros((len(envs), num_episodes))
+    obs = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)]
+    episode = [0] * len(envs)
+    while min(episode) < num_episodes:
+        actions = actor(torch.as_tensor(np.stack(obs), device=device)).cpu().numpy()
+        for k, env in enumerate(envs):
+            if episode[k] == num_episodes:  # this seed is done; the others go on
+                continue
+            obs[k], reward, terminated, truncated, _ = env.step(actions[k])
+            returns[k, episode[k]] += reward
+            if terminated or truncated:
+                episode[k] += 1
+                if episode[k] < num_episodes:
+                    obs[k], _ = env.reset()
     return returns
 
 
 def main(args: Args):
-    checkpoint = load_checkpoint(args.resume) if args.resume else None
-    default_name = f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    run_dir = os.path.normpath(args.resume) if args.resume else os.path.join("runs", args.run_name or default_name)
-    run_name = os.path.basename(run_dir)
-    if checkpoint and checkpoint["global_step"] >= args.total_timesteps:
-        print(f"{run_dir} had already finished its {args.total_timesteps} steps")
-        return {"run_dir": run_dir, "eval_returns": checkpoint["eval_returns"]}
+    seeds = list(range(args.seed, args.seed + args.num_seeds))  # independent runs, trained side by side
+    checkpoints = load_checkpoints(args.resume) if args.resume else None  # one per seed
+    run_dirs = run_folders(args, seeds, checkpoints)
+    if checkpoints and checkpoints[0]["global_step"] >= args.total_timesteps:
+        print(f"{', '.join(run_dirs)} had already finished its {args.total_timesteps} steps")
+        return results(run_dirs, [checkpoint["eval_returns"] for checkpoint in checkpoints])
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)
@@ -303,19 +341,19 @@ def main(args: Args):
     if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
         os.environ.setdefault("MUJOCO_GL", "disable")
 
-    # env setup: the evaluation env is seeded apart from the training env
-    env = make_env(args.env_id, args.seed)
-    eval_seed = args.seed + 100
-    video_folder = f"videos/{run_name}" if args.capture_video else None
-    eval_env = make_env(args.env_id, eval_seed, video_folder, video_every=args.eval_episodes)
-    obs_dim = int(np.prod(env.observation_space.shape))
-    action_dim = int(np.prod(env.action_space.shape))
+    # env setup: one env per seed; the evaluation envs are seeded apart from the training envs
+    envs = [make_env(args.env_id, seed) for seed in seeds]
+    eval_seeds = [seed + 100 for seed in seeds]
+    video_folders = [f"videos/{os.path.basename(run_dir)}" if args.capture_video else None for run_dir in run_dirs]
+    eval_envs = [make_env(args.env_id, s, v, video_every=args.eval_episodes) for s, v in zip(eval_seeds, video_folders)]
+    obs_dim = int(np.prod(envs[0].observation_space.shape))
+    action_dim = int(np.prod(envs[0].action_space.shape))
 
-    pessimistic_actor = Actor(obs_dim, env.action_space).to(device)
-    optimistic_actor = Actor(obs_dim, env.action_space).to(device)  # trained without a target network
-    qf = QEnsemble(obs_dim, action_dim, args.q_num, style=args.critic_style).to(device)
-    target_pessimistic_actor = Actor(obs_dim, env.action_space).to(device)
-    qf_target = QEnsemble(obs_dim, action_dim, args.q_num, style=args.critic_style).to(device)
+    pessimistic_actor = Actor(obs_dim, envs[0].action_space, args.num_seeds).to(device)
+    optimistic_actor = Actor(obs_dim, envs[0].action_space, args.num_seeds).to(device)  # trained without a target network
+    qf = QEnsemble(obs_dim, action_dim, args.q_num, style=args.critic_style, num_seeds=args.num_seeds).to(device)
+    target_pessimistic_actor = Actor(obs_dim, envs[0].action_space, args.num_seeds).to(device)
+    qf_target = QEnsemble(obs_dim, action_dim, args.q_num, style=args.critic_style, num_seeds=args.num_seeds).to(device)
     target_pessimistic_actor.load_state_dict(pessimistic_actor.state_dict())
     qf_target.load_state_dict(qf.state_dict())
     # fused Adam; capturable, so that --cudagraphs can record the optimizer step in its graph
@@ -324,11 +362,11 @@ def main(args: Args):
     pessimistic_optimizer = adam(pessimistic_actor.parameters(), lr=args.learning_rate)
     optimistic_optimizer = adam(optimistic_actor.parameters(), lr=args.learning_rate)
 
-    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device)
+    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device, args.num_seeds)
 
     def update(batch: Batch, policy_step: bool) -> dict:
         """One training iteration: the critics; every --policy-frequency steps both actors and the target
-        networks too. Returns what gets logged, by TensorBoard tag."""
+        networks too. Returns what gets logged, by TensorBoard tag, one value per seed."""
         with bf16_autocast(device, args.bf16):
             qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_pessimistic_actor, qf_target, args)
             if policy_step:
@@ -336,8 +374,8 @@ def main(args: Args):
                     batch, pessimistic_actor, optimistic_actor, pessimistic_optimizer, optimistic_optimizer, qf
                 )
                 soft_update([target_pessimistic_actor, qf_target], [pessimistic_actor, qf], args.tau)
-        logs = {"losses/qf_values": qf_a_values.mean(), "losses/qf_loss": qf_loss / len(qf_a_values)}  # per critic, as CleanRL
-        logs["charts/q_ensemble_std"] = qf_a_values.std(0).mean()
+        logs = {"losses/qf_values": qf_a_values.mean((-2, -1)), "losses/qf_loss": qf_loss / qf.num_q}  # per critic, as CleanRL
+        logs["charts/q_ensemble_std"] = qf_a_values.std(-2).mean(-1)
         if policy_step:
             logs["losses/pessimistic_actor_loss"] = pessimistic_actor_loss
             logs["losses/optimistic_actor_loss"] = optimistic_actor_loss
@@ -350,54 +388,54 @@ def main(args: Args):
     optimizers = {"q_optimizer": q_optimizer, "pessimistic_optimizer": pessimistic_optimizer}
     optimizers.update(optimistic_optimizer=optimistic_optimizer)
     parts = {"buffer": rb}  # with the networks and optimizers, what a checkpoint holds
-    start_step, eval_returns = 0, []  # eval_returns: (step, mean return) of every evaluation
-    optimistic_steps = 0  # steps acted by the optimistic actor
-    if checkpoint:
-        restore(checkpoint, env, nets, optimizers, **parts)
+    start_step, eval_returns = 0, [[] for _ in seeds]  # eval_returns: each seed's (step, mean return) of every evaluation
+    optimistic_steps = 0  # steps acted by the optimistic actor (the same steps for every seed)
+    obs = [None] * args.num_seeds  # None: that seed's episode starts at this step
+    if checkpoints:
+        checkpoint = join_seeds(checkpoints, nets)
+        obs = restore(checkpoint, envs, nets, optimizers, **parts)
         start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
         optimistic_steps = checkpoint["optimistic_steps"]
 
-    def state(step: int) -> dict:  # a checkpoint
-        return snapshot(
-            args, env, step, nets, optimizers, **parts, eval_returns=eval_returns, optimistic_steps=optimistic_steps
-        )
+    def state(step: int) -> list:  # one checkpoint per seed
+        extra = {"eval_returns": eval_returns, "optimistic_steps": optimistic_steps}  # plain values a checkpoint holds
+        return split_seeds(snapshot(args, envs, step, nets, optimizers, **parts, **extra), nets, run_dirs)
 
-    writer, pbar = start_logging(args, run_name, run_dir, start_step, device)
+    writers, pbar = start_logging(args, run_dirs, start_step, device)
     sps_time, sps_step, sps = time.time(), start_step, 0.0
     next_checkpoint = start_step + args.checkpoint_frequency
 
     def run_evaluation(step: int):
-        returns = evaluate(pessimistic_actor, eval_env, args.eval_episodes, eval_seed)
-        eval_returns.append((step, float(returns.mean())))
-        writer.add_scalar("eval/episodic_return", returns.mean(), step)
-        pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
-        tqdm.write(f"step {step}: return {returns.mean():.1f} +- {returns.std():.1f}, {sps:.0f} steps/s")
+        returns = evaluate(pessimistic_actor, eval_envs, args.eval_episodes, eval_seeds)
+        log_evaluation(writers, pbar, step, returns, sps, eval_returns, seeds)
 
-    obs = None  # None: an episode starts at this step
     for global_step in range(start_step, args.total_timesteps):
         if global_step % args.eval_frequency == 0:
             run_evaluation(global_step)
             sps_time = time.time()
-        if obs is None:
-            obs, _ = env.reset(seed=args.seed if global_step == 0 else None)
+        obs = [
+            env.reset(seed=seed if global_step == 0 else None)[0] if o is None else o for o, env, seed in zip(obs, envs, seeds)
+        ]
 
         # ALGO LOGIC: put action logic here
         if global_step < args.learning_starts:
-            actions = env.action_space.sample()
+            actions = np.stack([env.action_space.sample() for env in envs])
         elif is_optimistic_step(global_step, args.optimistic_ratio):  # explore with the optimistic actor
-            actions = optimistic_action(obs, optimistic_actor, qf, args.num_candidates, args.exploration_noise).cpu().numpy()
+            optimistic = optimistic_action(np.stack(obs), optimistic_actor, qf, args.num_candidates, args.exploration_noise)
+            actions = optimistic.cpu().numpy()
             optimistic_steps += 1
         else:
-            actions = noisy_action(obs, pessimistic_actor, args.exploration_noise).cpu().numpy()
+            actions = noisy_action(np.stack(obs), pessimistic_actor, args.exploration_noise).cpu().numpy()
 
         # execute the game and log data; a time-limit truncation is stored as not terminated, so its target bootstraps
-        next_obs, reward, terminated, truncated, info = env.step(actions)
-        rb.add(obs, actions, next_obs, reward, terminated)
-        obs = next_obs
-        if terminated or truncated:
-            writer.add_scalar("charts/episodic_return", info["episode"]["r"], global_step)
-            writer.add_scalar("charts/episodic_length", info["episode"]["l"], global_step)
-            obs = None
+        next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(envs, actions)))
+        rb.add(np.stack(obs), actions, np.stack(next_obs), rewards, terminations)
+        obs = list(next_obs)
+        for k, (writer, info) in enumerate(zip(writers, infos)):
+            if terminations[k] or truncations[k]:
+                writer.add_scalar("charts/episodic_return", info["episode"]["r"], global_step)
+                writer.add_scalar("charts/episodic_length", info["episode"]["l"], global_step)
+                obs[k] = None
 
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
@@ -411,34 +449,35 @@ def main(args: Args):
             try:
                 logs = update(batch, policy_step)
                 if policy_step and global_step % 100 == 0:
-                    log_scalars(writer, logs, global_step)
-                    writer.add_scalar("charts/optimistic_share", optimistic_steps / iteration, global_step)
-                    writer.add_scalar("charts/resets", args.reset_frequency and iteration // args.reset_frequency, global_step)
+                    log_scalars(writers, logs, global_step)
+                    resets = args.reset_frequency and iteration // args.reset_frequency
+                    for writer in writers:
+                        writer.add_scalar("charts/optimistic_share", optimistic_steps / iteration, global_step)
+                        writer.add_scalar("charts/resets", resets, global_step)
             except NonFiniteError as quantity:
-                stop_non_finite(quantity, global_step, run_dir, args.cudagraphs, lambda: state(global_step))
+                stop_non_finite(quantity, global_step, run_dirs, args.cudagraphs, lambda: state(global_step))
 
         if (global_step + 1) % 1000 == 0:  # training speed, evaluation time excluded
             sps = (global_step + 1 - sps_step) / (time.time() - sps_time)
-            writer.add_scalar("charts/SPS", sps, global_step)
+            for writer in writers:
+                writer.add_scalar("charts/SPS", sps, global_step)
             sps_time, sps_step = time.time(), global_step + 1
         pbar.update(1)
-        if args.checkpoint_frequency and obs is None and global_step + 1 >= next_checkpoint:
-            write_checkpoint(os.path.join(run_dir, CHECKPOINT), state(global_step + 1))
+        if args.checkpoint_frequency and global_step + 1 >= next_checkpoint:
+            write_checkpoints(run_dirs, state(global_step + 1))
             next_checkpoint = global_step + 1 + args.checkpoint_frequency
 
     run_evaluation(args.total_timesteps)
     if args.checkpoint_frequency:
-        write_checkpoint(os.path.join(run_dir, CHECKPOINT), state(args.total_timesteps))
+        write_checkpoints(run_dirs, state(args.total_timesteps))
     pbar.close()
     if args.save_model:
-        model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
-        saved = {"actor": pessimistic_actor, "optimistic_actor": optimistic_actor, "qf": qf}  # "actor": the evaluated policy
-        torch.save({name: net.state_dict() for name, net in saved.items()}, model_path)
-        tqdm.write(f"model saved to {model_path}")
-    env.close()
-    eval_env.close()
-    writer.close()
-    return {**nets, **optimizers, "actor": pessimistic_actor, "rb": rb, "run_dir": run_dir, "eval_returns": eval_returns}
+        save_models(args, run_dirs, {"actor": pessimistic_actor, "optimistic_actor": optimistic_actor, "qf": qf})
+    for env in envs + eval_envs:
+        env.close()
+    for writer in writers:
+        writer.close()
+    return {**nets, **optimizers, "update": update, "actor": pessimistic_actor, "rb": rb, **results(run_dirs, eval_returns)}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -489,6 +528,12 @@ def check_args(args: Args):
         (args.eval_frequency > 0, f"--eval-frequency must be > 0, got {args.eval_frequency}"),
         (args.eval_episodes > 0, f"--eval-episodes must be > 0, got {args.eval_episodes}"),
         (args.checkpoint_frequency >= 0, f"--checkpoint-frequency must be >= 0, got {args.checkpoint_frequency}"),
+        (args.num_seeds >= 1, f"--num-seeds must be >= 1, got {args.num_seeds}"),
+        (
+            args.num_seeds == 1 or not args.run_name or "{seed}" in args.run_name,
+            f"--run-name {args.run_name} names one folder for {args.num_seeds} seeds; write {{seed}} where each seed's number goes",
+        ),
+        (args.num_seeds == 1 or not args.track, "--track follows one run per process; drop it or use --num-seeds 1"),
     ]
     for ok, message in checks:
         if not ok:
@@ -533,13 +578,55 @@ def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_e
     env = gym.wrappers.RecordEpisodeStatistics(env)
     if video_folder:
         env = gym.wrappers.RecordVideo(env, video_folder, episode_trigger=lambda episode: episode % video_every == 0)
+    env = EpisodeRecord(env)
     env.action_space.seed(seed)
     return env
 
 
-def start_logging(args: Args, run_name: str, run_dir: str, start_step: int, device: torch.device):
-    """TensorBoard (a resumed run hides what the killed process logged after its checkpoint), Weights and
-    Biases with --track, and a progress bar on a terminal (in a log file the per-evaluation lines say the same)."""
+class EpisodeRecord(gym.Wrapper):
+    """Remembers how the current episode began (the reset's seed, or the env's random state before the reset) and
+    the actions taken since, so that a checkpoint taken mid-episode rebuilds the env exactly by replaying them."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.episode = None  # None: between episodes
+
+    def reset(self, *, seed=None, options=None):
+        start = rng_state(self.env.unwrapped.np_random) if seed is None else None
+        self.episode = {"seed": seed, "rng": start, "actions": []}
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action):
+        self.episode["actions"].append(np.array(action))
+        result = self.env.step(action)
+        if result[2] or result[3]:  # terminated or truncated
+            self.episode = None
+        return result
+
+    def state_dict(self) -> Optional[dict]:
+        if self.episode is None:
+            return None
+        actions = self.episode["actions"]
+        return {**self.episode, "actions": torch.from_numpy(np.stack(actions)) if actions else torch.zeros(0)}
+
+    def replay(self, state: Optional[dict]):
+        """Rebuilds the episode of a state_dict(): its observation now, or None between episodes."""
+        if state is None:
+            self.episode = None
+            return None
+        if state["rng"] is not None:
+            set_rng_state(self.env.unwrapped.np_random, state["rng"])
+        obs, _ = self.reset(seed=state["seed"])
+        for action in state["actions"].numpy():
+            obs = self.step(action)[0]
+        return obs
+
+
+def start_logging(args: Args, run_dirs: list, start_step: int, device: torch.device):
+    """TensorBoard, one writer per run folder (a resumed run hides what the killed process logged after its checkpoint),
+    Weights and Biases with --track, and a progress bar on a terminal (in a log file the per-evaluation lines say the
+    same). Each run's hyperparameters table gives its own seed."""
+    names = [os.path.basename(run_dir) for run_dir in run_dirs]
     if args.track:
         try:
             import wandb
@@ -550,20 +637,21 @@ def start_logging(args: Args, run_name: str, run_dir: str, start_step: int, devi
             entity=args.wandb_entity,
             sync_tensorboard=True,
             config=vars(args),
-            name=run_name,
+            name=names[0],
             monitor_gym=True,
             save_code=True,
         )
-    writer = SummaryWriter(run_dir, purge_step=start_step if args.resume else None)
-    if not args.resume:
+    writers = [SummaryWriter(run_dir, purge_step=start_step if args.resume else None) for run_dir in run_dirs]
+    for k, writer in enumerate(writers if not args.resume else []):
+        hyperparameters = {**vars(args), "seed": args.seed + k}
         writer.add_text(
             "hyperparameters",
-            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in hyperparameters.items()])),
         )
     pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
     resumed = f", resumed at step {start_step}" if args.resume else ""
-    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}{resumed}")
-    return writer, pbar
+    tqdm.write(f"{', '.join(names)}: {args.env_id} on {device}, logging to {', '.join(run_dirs)}{resumed}")
+    return writers, pbar
 
 
 def bf16_autocast(device: torch.device, enabled: bool):
@@ -584,29 +672,44 @@ def check_finite(value: torch.Tensor, name: str):
         raise NonFiniteError(name)
 
 
-def log_scalars(writer: SummaryWriter, logs: dict, step: int):
-    """Writes {tag: scalar tensor}; a non-finite value stops the run (where --cudagraphs catches a NaN)."""
-    values = {tag: value.item() for tag, value in logs.items()}
-    for tag, value in values.items():
-        if not math.isfinite(value):
+def log_scalars(writers: list, logs: dict, step: int):
+    """Writes {tag: tensor of one value per seed}, each seed's into its run; a non-finite value stops the run (where
+    --cudagraphs catches a NaN)."""
+    values = {tag: value.reshape(len(writers)).tolist() for tag, value in logs.items()}
+    for tag, seed_values in values.items():
+        if not all(math.isfinite(value) for value in seed_values):
             raise NonFiniteError(tag.split("/")[-1])
-    for tag, value in values.items():
-        writer.add_scalar(tag, value, step)
+    for tag, seed_values in values.items():
+        for writer, value in zip(writers, seed_values):
+            writer.add_scalar(tag, value, step)
 
 
-def stop_non_finite(quantity: NonFiniteError, step: int, run_dir: str, cudagraphs: bool, last_good_state):
+def log_evaluation(writers: list, pbar, step: int, returns: np.ndarray, sps: float, eval_returns: list, seeds: list):
+    """Records each seed's evaluation returns [num_seeds, episodes]: in its eval_returns, its TensorBoard run and a line."""
+    for k, (writer, seed_returns) in enumerate(zip(writers, returns)):
+        eval_returns[k].append((step, float(seed_returns.mean())))
+        writer.add_scalar("eval/episodic_return", seed_returns.mean(), step)
+        label = f"seed {seeds[k]} " if len(seeds) > 1 else ""
+        tqdm.write(f"{label}step {step}: return {seed_returns.mean():.1f} +- {seed_returns.std():.1f}, {sps:.0f} steps/s")
+    pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
+
+
+def stop_non_finite(quantity: NonFiniteError, step: int, run_dirs: list, cudagraphs: bool, last_good_state):
     """Ends the run on a non-finite loss. An eager update stops before the optimizer step that the loss would
-    have poisoned, so the state is still finite and is saved; a recorded graph is checked only when it logs."""
+    have poisoned, so the state is still finite and is saved (each seed's in its folder); a recorded graph is
+    checked only when it logs."""
     if cudagraphs:
         fail(
             f"{quantity} became non-finite by step {step} (--cudagraphs checks every 100 steps and keeps no last finite "
             "state; without it a run stops at the first bad update)"
         )
-    path = os.path.join(run_dir, "last_good_state.pt")
-    write_checkpoint(path, last_good_state())
+    paths = [os.path.join(run_dir, "last_good_state.pt") for run_dir in run_dirs]
+    for path, state in zip(paths, last_good_state()):
+        write_checkpoint(path, state)
     rates = [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(Args) if f.name.endswith(("lr", "learning_rate"))]
+    where = paths[0] if len(paths) == 1 else f"{paths[0]} and the other seeds' folders"
     fail(
-        f"{quantity} became non-finite at step {step} (try a smaller {' or '.join(rates)}); the last finite state is in {path}"
+        f"{quantity} became non-finite at step {step} (try a smaller {' or '.join(rates)}); the last finite state is in {where}"
     )
 
 
@@ -658,17 +761,17 @@ class CudaGraph:
         return self.outputs[key]
 
 
-# Checkpoints: everything needed to continue a run exactly. They are taken at episode boundaries,
-# where an environment holds no state but its random generators, so any env can be resumed.
+# Checkpoints: everything needed to continue a run exactly. An environment's state is its random generators and,
+# mid-episode, how its episode began and the actions since, which EpisodeRecord replays to rebuild it.
 CHECKPOINT = "checkpoint.pt"
 # flags that may differ between a run and its resumption: they don't change what is learned
 RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity"}
 RESUMABLE_FLAGS |= {"capture_video", "save_model", "cuda", "cudagraphs"}
 
 
-def snapshot(args: Args, env: gym.Env, global_step: int, nets: dict, optimizers: dict, **parts) -> dict:
-    """A run's state at `global_step`: its flags, networks, optimizers and random generators, and `parts`
-    (objects with a state_dict(), such as the replay buffer, or plain values such as the evaluations)."""
+def snapshot(args: Args, envs: list, global_step: int, nets: dict, optimizers: dict, **parts) -> dict:
+    """A run's state at `global_step`: its flags, networks, optimizers and random generators, each env's state, and
+    `parts` (objects with a state_dict(), such as the replay buffer, or plain values such as the evaluations)."""
     return {
         "script": os.path.basename(__file__),
         "args": vars(args),
@@ -681,14 +784,21 @@ def snapshot(args: Args, env: gym.Env, global_step: int, nets: dict, optimizers:
             "numpy": rng_state(np.random.mtrand._rand),
             "torch": torch.get_rng_state(),
             "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else [],
-            "action_space": rng_state(env.action_space.np_random),
-            "env": rng_state(env.unwrapped.np_random),
         },
+        "envs": [
+            {
+                "action_space": rng_state(env.action_space.np_random),
+                "env": rng_state(env.unwrapped.np_random),
+                "episode": env.state_dict(),
+            }
+            for env in envs
+        ],
     }
 
 
-def restore(checkpoint: dict, env: gym.Env, nets: dict, optimizers: dict, **parts):
-    """Loads a snapshot() into the objects it was taken of (its plain values are the caller's to read)."""
+def restore(checkpoint: dict, envs: list, nets: dict, optimizers: dict, **parts) -> list:
+    """Loads a snapshot() into the objects it was taken of (its plain values are the caller's to read). Returns each
+    env's observation now (None between episodes)."""
     for name, net in nets.items():
         net.load_state_dict(checkpoint["nets"][name])
     for name, opt in optimizers.items():
@@ -704,8 +814,12 @@ def restore(checkpoint: dict, env: gym.Env, nets: dict, optimizers: dict, **part
     torch.set_rng_state(rng["torch"])
     if rng["cuda"]:
         torch.cuda.set_rng_state_all(rng["cuda"])
-    set_rng_state(env.action_space.np_random, rng["action_space"])
-    set_rng_state(env.unwrapped.np_random, rng["env"])
+    observations = []
+    for env, state in zip(envs, checkpoint["envs"]):
+        observations.append(env.replay(state["episode"]))
+        set_rng_state(env.action_space.np_random, state["action_space"])
+        set_rng_state(env.unwrapped.np_random, state["env"])
+    return observations
 
 
 def rng_state(rng) -> dict:
@@ -730,8 +844,8 @@ def write_checkpoint(path: str, state: dict):
     os.replace(path + ".tmp", path)
 
 
-def load_checkpoint(run_dir: str) -> dict:
-    path = os.path.join(run_dir, CHECKPOINT)
+def load_checkpoint(run_dir: str, name: str = CHECKPOINT) -> dict:
+    path = os.path.join(run_dir, name)
     if not os.path.isdir(run_dir):
         fail(f"--resume {run_dir}: no such run folder")
     if not os.path.isfile(path):
@@ -745,6 +859,132 @@ def load_checkpoint(run_dir: str) -> dict:
         found = checkpoint.get("script") if isinstance(checkpoint, dict) else None
         fail(f"{path} was not written by {script} (written by {found or 'something else'})")
     return checkpoint
+
+
+# Many seeds in one process (--num-seeds): each seed is an ordinary run with its own folder, TensorBoard log,
+# evaluations, checkpoint and saved model; these functions cut the stacked state into runs and join it back.
+def run_folders(args: Args, seeds: list, checkpoints: Optional[list]) -> list:
+    """Each seed's run folder: --resume's and those of the seeds that trained beside it, or runs/ + --run-name
+    ({seed} replaced by each seed's number), by default {env_id}__{exp_name}__{seed}__{unix time}."""
+    if checkpoints:
+        parent = os.path.dirname(os.path.normpath(args.resume))
+        return [os.path.join(parent, name) for name in checkpoints[0]["run_names"]]
+    template = args.run_name or f"{args.env_id.replace('/', '-')}__{args.exp_name}__{{seed}}__{int(time.time())}"
+    return [os.path.join("runs", template.replace("{seed}", str(seed))) for seed in seeds]
+
+
+def results(run_dirs: list, eval_returns: list) -> dict:
+    """What main returns about the runs: every seed's, and the first seed's as a single-seed run gives them."""
+    return {"run_dir": run_dirs[0], "eval_returns": eval_returns[0], "run_dirs": run_dirs, "seeds_eval_returns": eval_returns}
+
+
+def seed_share(net_state: dict, params: set, k: int, num_seeds: int) -> dict:
+    """Seed k's share of a stacked network's state_dict: its cut of each parameter (buffers are every seed's)."""
+    return {name: t.chunk(num_seeds)[k].clone() if name in params else t for name, t in net_state.items()}
+
+
+# plain values of a checkpoint that hold one entry (or, for tensors, one cut of the leading dimension) per seed
+PER_SEED = ("eval_returns", "log_alpha")
+
+
+def split_seeds(state: dict, nets: dict, run_dirs: list) -> list:
+    """One checkpoint per seed from a snapshot() of the stacked seeds: the seed's cut of every parameter, optimizer
+    moment and replay buffer, its env and its evaluations; the flags, the step and the process's generators in all."""
+    n = len(run_dirs)
+    params = {name: {key for key, _ in net.named_parameters()} for name, net in nets.items()}
+    checkpoints = []
+    for k in range(n):
+        checkpoint = {**state, "run_names": [os.path.basename(run_dir) for run_dir in run_dirs], "seed_index": k}
+        checkpoint["nets"] = {name: seed_share(sd, params[name], k, n) for name, sd in state["nets"].items()}
+        checkpoint["optimizers"] = {
+            name: {
+                **sd,
+                "state": {
+                    i: {key: t.chunk(n)[k].clone() if t.dim() else t for key, t in s.items()} for i, s in sd["state"].items()
+                },
+            }
+            for name, sd in state["optimizers"].items()
+        }
+        checkpoint["buffer"] = {**state["buffer"], "rows": state["buffer"]["rows"][k : k + 1].clone()}
+        checkpoint["envs"] = state["envs"][k : k + 1]
+        for key in PER_SEED:
+            if key in state:
+                checkpoint[key] = state[key][k] if isinstance(state[key], list) else state[key].chunk(n)[k].clone()
+        checkpoints.append(checkpoint)
+    return checkpoints
+
+
+def join_seeds(checkpoints: list, nets: dict) -> dict:
+    """split_seeds() undone: the seeds' checkpoints as one snapshot() of the stacked seeds, for restore()."""
+    first = checkpoints[0]
+    params = {name: {key for key, _ in net.named_parameters()} for name, net in nets.items()}
+    state = dict(first)
+    state["nets"] = {
+        name: {
+            key: torch.cat([c["nets"][name][key] for c in checkpoints]) if key in params[name] else t for key, t in sd.items()
+        }
+        for name, sd in first["nets"].items()
+    }
+    state["optimizers"] = {
+        name: {
+            **sd,
+            "state": {
+                i: {
+                    key: torch.cat([c["optimizers"][name]["state"][i][key] for c in checkpoints]) if t.dim() else t
+                    for key, t in s.items()
+                }
+                for i, s in sd["state"].items()
+            },
+        }
+        for name, sd in first["optimizers"].items()
+    }
+    state["buffer"] = {**first["buffer"], "rows": torch.cat([c["buffer"]["rows"] for c in checkpoints])}
+    state["envs"] = [env for c in checkpoints for env in c["envs"]]
+    for key in PER_SEED:
+        if key in first:
+            state[key] = (
+                [c[key] for c in checkpoints] if isinstance(first[key], list) else torch.cat([c[key] for c in checkpoints])
+            )
+    return state
+
+
+def write_checkpoints(run_dirs: list, states: list):
+    """Each seed's checkpoint into its run folder. All are written before any replaces its predecessor, so that a kill
+    leaves either all the old ones or, for any seed still at the old step, its new one complete beside it."""
+    paths = [os.path.join(run_dir, CHECKPOINT) for run_dir in run_dirs]
+    for path, state in zip(paths, states):
+        torch.save(state, path + ".tmp")
+    for path in paths:
+        os.replace(path + ".tmp", path)
+
+
+def load_checkpoints(run_dir: str) -> list:
+    """The checkpoints of the seeds that trained in one process with the run in run_dir, at one step, in seed order."""
+    first = load_checkpoint(run_dir)
+    run_dirs = [os.path.join(os.path.dirname(os.path.normpath(run_dir)), name) for name in first["run_names"]]
+    checkpoints = [load_checkpoint(d) for d in run_dirs]
+    step = max(checkpoint["global_step"] for checkpoint in checkpoints)
+    for k, d in enumerate(run_dirs):
+        if checkpoints[k]["global_step"] < step:  # killed between write_checkpoints()' renames: finish them
+            if not os.path.isfile(os.path.join(d, CHECKPOINT + ".tmp")):
+                fail(f"--resume {run_dir}: {d} holds no checkpoint at step {step}, the step of the seeds beside it")
+            checkpoints[k] = load_checkpoint(d, CHECKPOINT + ".tmp")
+            os.replace(os.path.join(d, CHECKPOINT + ".tmp"), os.path.join(d, CHECKPOINT))
+    return checkpoints
+
+
+def save_models(args: Args, run_dirs: list, saved: dict):
+    """--save-model: each seed's cut of these networks (or tensors) into its run folder, as a one-seed run saves them."""
+    for k, run_dir in enumerate(run_dirs):
+        model = {}
+        for name, x in saved.items():
+            if isinstance(x, nn.Module):
+                model[name] = seed_share(x.state_dict(), {key for key, _ in x.named_parameters()}, k, len(run_dirs))
+            else:
+                model[name] = x.detach().cpu().chunk(len(run_dirs))[k].clone()
+        model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
+        torch.save(model, model_path)
+        tqdm.write(f"model saved to {model_path}")
 
 
 if __name__ == "__main__":

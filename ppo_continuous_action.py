@@ -331,13 +331,13 @@ def main(args: Args):
     parts = {"rollout": rollout, "normalizer": normalizer}
     start_step, eval_returns = 0, []  # eval_returns: (step, mean return) of every evaluation
     if checkpoint:
-        restore(checkpoint, env, nets, optimizers, **parts)
+        restore(checkpoint, [env], nets, optimizers, **parts)
         start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
 
     def state(step: int) -> dict:  # a checkpoint
-        return snapshot(args, env, step, nets, optimizers, **parts, eval_returns=eval_returns)
+        return snapshot(args, [env], step, nets, optimizers, **parts, eval_returns=eval_returns)
 
-    writer, pbar = start_logging(args, run_name, run_dir, start_step, device)
+    (writer,), pbar = start_logging(args, [run_dir], start_step, device)
     sps_time, sps_step, sps = time.time(), start_step, 0.0
     next_checkpoint = start_step + args.checkpoint_frequency
 
@@ -513,13 +513,55 @@ def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_e
     env = gym.wrappers.RecordEpisodeStatistics(env)
     if video_folder:
         env = gym.wrappers.RecordVideo(env, video_folder, episode_trigger=lambda episode: episode % video_every == 0)
+    env = EpisodeRecord(env)
     env.action_space.seed(seed)
     return env
 
 
-def start_logging(args: Args, run_name: str, run_dir: str, start_step: int, device: torch.device):
-    """TensorBoard (a resumed run hides what the killed process logged after its checkpoint), Weights and
-    Biases with --track, and a progress bar on a terminal (in a log file the per-evaluation lines say the same)."""
+class EpisodeRecord(gym.Wrapper):
+    """Remembers how the current episode began (the reset's seed, or the env's random state before the reset) and
+    the actions taken since, so that a checkpoint taken mid-episode rebuilds the env exactly by replaying them."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.episode = None  # None: between episodes
+
+    def reset(self, *, seed=None, options=None):
+        start = rng_state(self.env.unwrapped.np_random) if seed is None else None
+        self.episode = {"seed": seed, "rng": start, "actions": []}
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action):
+        self.episode["actions"].append(np.array(action))
+        result = self.env.step(action)
+        if result[2] or result[3]:  # terminated or truncated
+            self.episode = None
+        return result
+
+    def state_dict(self) -> Optional[dict]:
+        if self.episode is None:
+            return None
+        actions = self.episode["actions"]
+        return {**self.episode, "actions": torch.from_numpy(np.stack(actions)) if actions else torch.zeros(0)}
+
+    def replay(self, state: Optional[dict]):
+        """Rebuilds the episode of a state_dict(): its observation now, or None between episodes."""
+        if state is None:
+            self.episode = None
+            return None
+        if state["rng"] is not None:
+            set_rng_state(self.env.unwrapped.np_random, state["rng"])
+        obs, _ = self.reset(seed=state["seed"])
+        for action in state["actions"].numpy():
+            obs = self.step(action)[0]
+        return obs
+
+
+def start_logging(args: Args, run_dirs: list, start_step: int, device: torch.device):
+    """TensorBoard, one writer per run folder (a resumed run hides what the killed process logged after its checkpoint),
+    Weights and Biases with --track, and a progress bar on a terminal (in a log file the per-evaluation lines say the
+    same). Each run's hyperparameters table gives its own seed."""
+    names = [os.path.basename(run_dir) for run_dir in run_dirs]
     if args.track:
         try:
             import wandb
@@ -530,20 +572,21 @@ def start_logging(args: Args, run_name: str, run_dir: str, start_step: int, devi
             entity=args.wandb_entity,
             sync_tensorboard=True,
             config=vars(args),
-            name=run_name,
+            name=names[0],
             monitor_gym=True,
             save_code=True,
         )
-    writer = SummaryWriter(run_dir, purge_step=start_step if args.resume else None)
-    if not args.resume:
+    writers = [SummaryWriter(run_dir, purge_step=start_step if args.resume else None) for run_dir in run_dirs]
+    for k, writer in enumerate(writers if not args.resume else []):
+        hyperparameters = {**vars(args), "seed": args.seed + k}
         writer.add_text(
             "hyperparameters",
-            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in hyperparameters.items()])),
         )
     pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
     resumed = f", resumed at step {start_step}" if args.resume else ""
-    tqdm.write(f"{run_name}: {args.env_id} on {device}, logging to {run_dir}{resumed}")
-    return writer, pbar
+    tqdm.write(f"{', '.join(names)}: {args.env_id} on {device}, logging to {', '.join(run_dirs)}{resumed}")
+    return writers, pbar
 
 
 class NonFiniteError(Exception):
@@ -566,17 +609,17 @@ def stop_non_finite(quantity: NonFiniteError, step: int, run_dir: str, last_good
     )
 
 
-# Checkpoints: everything needed to continue a run exactly. They are taken at episode boundaries,
-# where an environment holds no state but its random generators, so any env can be resumed.
+# Checkpoints: everything needed to continue a run exactly. An environment's state is its random generators and,
+# mid-episode, how its episode began and the actions since, which EpisodeRecord replays to rebuild it.
 CHECKPOINT = "checkpoint.pt"
 # flags that may differ between a run and its resumption: they don't change what is learned
 RESUMABLE_FLAGS = {"resume", "run_name", "checkpoint_frequency", "track", "wandb_project_name", "wandb_entity"}
 RESUMABLE_FLAGS |= {"capture_video", "save_model", "cuda"}
 
 
-def snapshot(args: Args, env: gym.Env, global_step: int, nets: dict, optimizers: dict, **parts) -> dict:
-    """A run's state at `global_step`: its flags, networks, optimizers and random generators, and `parts`
-    (objects with a state_dict(), such as the replay buffer, or plain values such as the evaluations)."""
+def snapshot(args: Args, envs: list, global_step: int, nets: dict, optimizers: dict, **parts) -> dict:
+    """A run's state at `global_step`: its flags, networks, optimizers and random generators, each env's state, and
+    `parts` (objects with a state_dict(), such as the replay buffer, or plain values such as the evaluations)."""
     return {
         "script": os.path.basename(__file__),
         "args": vars(args),
@@ -589,14 +632,21 @@ def snapshot(args: Args, env: gym.Env, global_step: int, nets: dict, optimizers:
             "numpy": rng_state(np.random.mtrand._rand),
             "torch": torch.get_rng_state(),
             "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else [],
-            "action_space": rng_state(env.action_space.np_random),
-            "env": rng_state(env.unwrapped.np_random),
         },
+        "envs": [
+            {
+                "action_space": rng_state(env.action_space.np_random),
+                "env": rng_state(env.unwrapped.np_random),
+                "episode": env.state_dict(),
+            }
+            for env in envs
+        ],
     }
 
 
-def restore(checkpoint: dict, env: gym.Env, nets: dict, optimizers: dict, **parts):
-    """Loads a snapshot() into the objects it was taken of (its plain values are the caller's to read)."""
+def restore(checkpoint: dict, envs: list, nets: dict, optimizers: dict, **parts) -> list:
+    """Loads a snapshot() into the objects it was taken of (its plain values are the caller's to read). Returns each
+    env's observation now (None between episodes)."""
     for name, net in nets.items():
         net.load_state_dict(checkpoint["nets"][name])
     for name, opt in optimizers.items():
@@ -612,8 +662,12 @@ def restore(checkpoint: dict, env: gym.Env, nets: dict, optimizers: dict, **part
     torch.set_rng_state(rng["torch"])
     if rng["cuda"]:
         torch.cuda.set_rng_state_all(rng["cuda"])
-    set_rng_state(env.action_space.np_random, rng["action_space"])
-    set_rng_state(env.unwrapped.np_random, rng["env"])
+    observations = []
+    for env, state in zip(envs, checkpoint["envs"]):
+        observations.append(env.replay(state["episode"]))
+        set_rng_state(env.action_space.np_random, state["action_space"])
+        set_rng_state(env.unwrapped.np_random, state["env"])
+    return observations
 
 
 def rng_state(rng) -> dict:
@@ -638,8 +692,8 @@ def write_checkpoint(path: str, state: dict):
     os.replace(path + ".tmp", path)
 
 
-def load_checkpoint(run_dir: str) -> dict:
-    path = os.path.join(run_dir, CHECKPOINT)
+def load_checkpoint(run_dir: str, name: str = CHECKPOINT) -> dict:
+    path = os.path.join(run_dir, name)
     if not os.path.isdir(run_dir):
         fail(f"--resume {run_dir}: no such run folder")
     if not os.path.isfile(path):

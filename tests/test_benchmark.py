@@ -28,9 +28,9 @@ TINY = [
 ]
 
 
-def bench(*flags, cwd, timeout=600):
-    env = {**os.environ, "PATH": os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"]}
-    return subprocess.run(["bash", BENCHMARK, *flags], cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
+def bench(*flags, cwd, timeout=600, benchmark=BENCHMARK, env=None):
+    env = {**os.environ, "PATH": os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"], **(env or {})}
+    return subprocess.run(["bash", benchmark, *flags], cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
 
 
 def test_help_lists_the_flags(tmp_path):
@@ -41,6 +41,7 @@ def test_help_lists_the_flags(tmp_path):
         "--env-ids",
         "--suite",
         "--seeds",
+        "--seeds-per-process",
         "--total-timesteps",
         "--workers",
         "--dry-run",
@@ -83,6 +84,7 @@ def test_defaults_are_the_papers_tasks_and_ten_seeds(tmp_path):
     [
         (["--algos", "ppo2"], "unknown algorithm 'ppo2'"),
         (["--workers", "0"], "--workers must be a positive integer"),
+        (["--seeds-per-process", "x"], "--seeds-per-process must be a positive integer"),
         (["--suite", "atari"], "--suite takes dmc or mujoco"),
         (["--seeds", "x"], "seeds must be non-negative integers"),
         (["--frobnicate"], "unknown flag '--frobnicate'"),
@@ -363,3 +365,171 @@ def test_runs_listed_as_finished_are_skipped(tmp_path):
         "Pendulum-v1__td3__2__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1"
     ]
     assert "no such file" in bench("--skip-listed", "nope.txt", cwd=tmp_path).stderr
+
+
+# --- --seeds-per-process: consecutive seeds in one process ------------------------------------------
+
+FAKE_SCRIPT = '''"""A stand-in for a training script: prints its command line, makes each seed's run folder with a checkpoint."""
+import os
+import sys
+
+
+class Args:
+    num_seeds: int = 1
+
+
+argv = sys.argv[1:]
+seed = int(argv[argv.index("--seed") + 1])
+num_seeds = int(argv[argv.index("--num-seeds") + 1]) if "--num-seeds" in argv else 1
+run_name = argv[argv.index("--run-name") + 1]
+print("command:", " ".join(argv))
+for s in range(seed, seed + num_seeds):
+    os.makedirs(os.path.join("runs", run_name.replace("{seed}", str(s))), exist_ok=True)
+    open(os.path.join("runs", run_name.replace("{seed}", str(s)), "checkpoint.pt"), "w").close()
+sys.exit(int(os.environ.get("FAKE_EXIT", "0")))
+'''
+FAKE = ["--algos", "fake", "--env-ids", "Pendulum-v1", "--total-timesteps", "300"]
+
+
+def fake_name(seed):
+    return f"Pendulum-v1__fake__{seed}__300"
+
+
+@pytest.fixture
+def fake(tmp_path):
+    """A copy of benchmark.sh beside stand-in scripts, `fake` (it has --num-seeds) and `oneseed` (it has not), and an
+    empty folder to sweep in: sweeps of a few milliseconds a run."""
+    repo, work = tmp_path / "repo", tmp_path / "work"
+    repo.mkdir()
+    work.mkdir()
+    shutil.copy(BENCHMARK, repo / "benchmark.sh")
+    (repo / "fake_continuous_action.py").write_text(FAKE_SCRIPT)
+    (repo / "oneseed_continuous_action.py").write_text(FAKE_SCRIPT.replace("num_seeds: int = 1", "seed: int = 1"))
+
+    def run(*flags, env=None):
+        return bench(*flags, cwd=work, benchmark=str(repo / "benchmark.sh"), env=env, timeout=120)
+
+    run.work = work
+    return run
+
+
+def test_seeds_per_process_groups_consecutive_seeds_and_starts_a_group_at_a_gap(tmp_path):
+    flags = ["--algos", "td3", "oparl", "--env-ids", "Pendulum-v1", "--seeds", "1", "2", "3", "5", *TINY[:2]]
+    result = bench(*flags, "--seeds-per-process", "4", "--dry-run", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == [
+        f"bash {BENCHMARK} --run-one td3 Pendulum-v1 1-3 300 10000 -- ",
+        f"bash {BENCHMARK} --run-one oparl Pendulum-v1 1-3 300 10000 -- ",
+        f"bash {BENCHMARK} --run-one td3 Pendulum-v1 5 300 10000 -- ",
+        f"bash {BENCHMARK} --run-one oparl Pendulum-v1 5 300 10000 -- ",
+    ]
+    five = ["--algos", "td3", "--env-ids", "Pendulum-v1", "--seeds", "1", "2", "3", "4", "5", "--seeds-per-process", "2"]
+    groups = [line.split()[5] for line in bench(*five, "--dry-run", cwd=tmp_path).stdout.splitlines()]
+    assert groups == ["1-2", "3-4", "5"]
+    job = bench(*five, "--dry-run", "--slurm", cwd=tmp_path).stdout  # one array task per group
+    assert "#SBATCH --array=0-2" in job and "# run: td3 Pendulum-v1 3-4 default 10000 -- " in job
+    assert not os.path.exists(tmp_path / "runs")
+
+
+def test_seeds_per_process_one_changes_nothing(fake, tmp_path):
+    assert bench("--dry-run", cwd=tmp_path).stdout == bench("--dry-run", "--seeds-per-process", "1", cwd=tmp_path).stdout
+    result = fake(*FAKE, "--seeds", "1", "2", "--seeds-per-process", "1")
+    assert "summary: 2 done, 0 skipped (finished before), 0 failed" in result.stdout, result.stdout + result.stderr
+    for seed in (1, 2):
+        assert (fake.work / "logs" / f"{fake_name(seed)}.log").read_text() == (
+            "float32 kernels: mkl-default\n"
+            f"command: --env-id Pendulum-v1 --seed {seed} --total-timesteps 300 --run-name {fake_name(seed)} "
+            "--checkpoint-frequency 10000\n"
+        )
+
+
+def test_a_group_is_one_process_for_its_seeds(fake):
+    result = fake(*FAKE, "--seeds", "1", "2", "3", "4", "--seeds-per-process", "3", "--workers", "1")
+    assert "summary: 4 done, 0 skipped (finished before), 0 failed" in result.stdout, result.stdout + result.stderr
+    # the progress counts runs, not processes
+    assert "runs: 3 finished, 0 running, 1 left" in result.stdout and "runs: 4 finished, 0 running, 0 left" in result.stdout
+    logs = fake.work / "logs"
+    assert (logs / f"{fake_name(1)}.log").read_text() == (
+        "float32 kernels: mkl-default\n"
+        f"seeds per process: 3 (output in logs/{fake_name(1)}.log)\n"
+        "command: --env-id Pendulum-v1 --seed 1 --num-seeds 3 --total-timesteps 300 --run-name Pendulum-v1__fake__{seed}__300 "
+        "--checkpoint-frequency 10000\n"
+    )
+    for seed in (2, 3):
+        assert (logs / f"{fake_name(seed)}.log").read_text() == (
+            f"float32 kernels: mkl-default\nseeds per process: 3 (output in logs/{fake_name(1)}.log)\n"
+        )
+    assert "--seed 4 --total-timesteps 300" in (logs / f"{fake_name(4)}.log").read_text()  # a group of one: as ever
+    assert all((fake.work / "runs" / fake_name(seed) / "DONE").exists() for seed in (1, 2, 3, 4))
+
+
+def test_a_group_leaves_out_finished_runs(fake):
+    (fake.work / "runs" / fake_name(2)).mkdir(parents=True)
+    (fake.work / "runs" / fake_name(2) / "DONE").touch()
+    listed = fake.work / "finished_runs.txt"
+    listed.write_text(fake_name(5) + "\n")
+    flags = [*FAKE, "--seeds", "1", "2", "3", "4", "5", "--seeds-per-process", "5", "--skip-listed", str(listed)]
+    assert [line.split()[5] for line in fake(*flags, "--dry-run").stdout.splitlines()] == ["1", "3-4"]
+    result = fake(*flags)
+    assert "summary: 3 done, 2 skipped (finished before), 0 failed" in result.stdout, result.stdout + result.stderr
+    assert os.listdir(fake.work / "runs" / fake_name(2)) == ["DONE"] and not (fake.work / "runs" / fake_name(5)).exists()
+    assert "--seed 3 --num-seeds 2 " in (fake.work / "logs" / f"{fake_name(3)}.log").read_text()
+    nothing_left = fake(*FAKE, "--seeds", "2", "5", "--seeds-per-process", "2", "--skip-listed", str(listed), "--slurm")
+    assert nothing_left.returncode == 0 and "nothing to submit: the sweep's 2 runs are all finished" in nothing_left.stdout
+
+
+def test_a_group_resumes_from_its_first_runs_folder(fake):
+    runs = fake.work / "runs"
+    for seed in (1, 2, 4):  # 1-2 stopped with their checkpoints; 3-4 died before theirs (4's is another run's)
+        (runs / fake_name(seed)).mkdir(parents=True)
+        (runs / fake_name(seed) / "events").touch()
+        if seed != 3:
+            (runs / fake_name(seed) / "checkpoint.pt").touch()
+    result = fake(*FAKE, "--seeds", "1", "2", "3", "4", "--seeds-per-process", "2")
+    assert "summary: 4 done, 0 skipped (finished before), 0 failed" in result.stdout, result.stdout + result.stderr
+    log = (fake.work / "logs" / f"{fake_name(1)}.log").read_text()
+    assert log.rstrip().endswith(f"--checkpoint-frequency 10000 --resume runs/{fake_name(1)}")
+    assert (runs / fake_name(2) / "events").exists()  # a resumed group's folders are kept
+    assert "--resume" not in (fake.work / "logs" / f"{fake_name(3)}.log").read_text()
+    assert not (runs / fake_name(4) / "events").exists()  # a group that starts again starts every run afresh
+
+
+@pytest.mark.skipif(shutil.which("flock") is None, reason="flock (util-linux) is not installed: runs are not locked")
+def test_a_group_is_busy_if_any_of_its_runs_is_and_fails_as_a_whole(fake):
+    flags = [*FAKE, "--seeds", "1", "2", "3", "--seeds-per-process", "2"]
+    (fake.work / "logs").mkdir()
+    with open(fake.work / "logs" / f"{fake_name(2)}.lock", "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        busy = fake(*flags)
+    assert "summary: 1 done, 0 skipped (finished before), 0 failed" in busy.stdout, busy.stdout + busy.stderr
+    for seed in (1, 2):
+        assert f"left alone, running in another sweep: {fake_name(seed)}" in busy.stdout
+    assert not (fake.work / "runs" / fake_name(1)).exists()
+    failed = fake(*flags, env={"FAKE_EXIT": "1"})
+    assert failed.returncode != 0
+    assert "summary: 0 done, 1 skipped (finished before), 2 failed" in failed.stdout
+    for seed in (1, 2):  # each run of the group failed, its output in the group's log
+        assert f"failed: {fake_name(seed)} (log: logs/{fake_name(1)}.log)" in failed.stdout
+
+
+def test_seeds_per_process_needs_a_script_with_num_seeds(fake):
+    refused = fake(*FAKE[:1], "fake", "oneseed", *FAKE[2:], "--seeds", "1", "2", "--seeds-per-process", "2")
+    assert refused.returncode == 2 and refused.stderr.strip().splitlines() == [
+        "error: --seeds-per-process 2: oneseed_continuous_action.py has no --num-seeds (one seed per process)"
+    ]
+    assert os.listdir(fake.work) == []  # refused before anything ran
+    assert fake("--algos", "oneseed", *FAKE[2:], "--seeds", "1", "2", "--seeds-per-process", "1", "--dry-run").returncode == 0
+
+
+def test_a_real_group_trains_its_seeds_in_one_process(tmp_path):
+    result = bench(
+        "--algos", "td3", "--env-ids", "Pendulum-v1", "--seeds", "1", "2", "--seeds-per-process", "2", *TINY, cwd=tmp_path
+    )
+    assert "summary: 2 done, 0 skipped (finished before), 0 failed" in result.stdout, result.stdout + result.stderr
+    first, second = (
+        f"Pendulum-v1__td3__{seed}__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1"
+        for seed in (1, 2)
+    )
+    assert (tmp_path / "runs" / first / "DONE").exists() and (tmp_path / "runs" / second / "DONE").exists()
+    assert "seed 2 step 300" in (tmp_path / "logs" / f"{first}.log").read_text()
+    assert f"seeds per process: 2 (output in logs/{first}.log)" in (tmp_path / "logs" / f"{second}.log").read_text()

@@ -89,7 +89,7 @@ def test_buffer_holds_every_transition_with_its_true_final_observation(script, t
     args = small_args(algo, env_id="Pendulum-v1", total_timesteps=450, learning_starts=1000, eval_frequency=450)
     rb = algo.main(args)["rb"]
     assert rb.size == 450
-    batch = rb.storage[:450].split(rb.widths, dim=1)  # on the run's device (a GPU where there is one)
+    batch = rb.storage[0, :450].split(rb.widths, dim=1)  # on the run's device (a GPU where there is one)
     obs, actions, next_obs, _, terminations = (field.cpu().numpy() for field in batch)
     assert not terminations.any()
     # replaying the stored actions from the same start reproduces every stored next observation

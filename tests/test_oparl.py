@@ -153,30 +153,30 @@ class SpreadByFirstAction:
     """A fake ensemble whose members disagree in proportion to |action[0]|."""
 
     def __call__(self, obs, actions):
-        return torch.stack([actions[:, 0] * k for k in range(5)])
+        return torch.stack([actions[..., 0] * k for k in range(5)], -2)  # [seeds, critics, candidates]
 
 
 def test_candidate_with_the_largest_ensemble_std_is_taken():
     torch.manual_seed(0)
     actor = oparl.Actor(OBS_DIM, SPACE)
-    obs = torch.randn(OBS_DIM)
+    obs = torch.randn(1, OBS_DIM)  # one seed
     for _ in range(20):
         rng_state = torch.get_rng_state()
         chosen = oparl.optimistic_action(obs, actor, SpreadByFirstAction(), num_candidates=8, exploration_noise=0.5)
         torch.set_rng_state(rng_state)  # replay the same 8 candidates
         with torch.no_grad():
             candidates = (actor(obs).expand(8, -1) + torch.normal(0, actor.action_scale.expand(8, -1) * 0.5)).clamp(-2, 2)
-        assert torch.equal(chosen, candidates[candidates[:, 0].abs().argmax()])
+        assert torch.equal(chosen[0], candidates[candidates[:, 0].abs().argmax()])
         assert candidates[:, 0].abs().unique().numel() == 8  # a real choice among distinct candidates
 
 
 def test_one_candidate_is_the_noisy_optimistic_action():
     torch.manual_seed(0)
     actor = oparl.Actor(OBS_DIM, SPACE)
-    obs = torch.randn(OBS_DIM)
-    actions = torch.stack([oparl.optimistic_action(obs, actor, None, 1, 0.1) for _ in range(2000)])
+    obs = torch.randn(1, OBS_DIM)  # one seed
+    actions = torch.stack([oparl.optimistic_action(obs, actor, None, 1, 0.1)[0] for _ in range(2000)])
     with torch.no_grad():
-        torch.testing.assert_close(actions.mean(0), actor(obs), atol=0.02, rtol=0)
+        torch.testing.assert_close(actions.mean(0), actor(obs)[0], atol=0.02, rtol=0)
     torch.testing.assert_close(actions.std(0), torch.full((ACTION_DIM,), 0.2), atol=0.02, rtol=0)  # 0.1 * action scale 2
 
 
@@ -231,8 +231,8 @@ def test_evaluation_uses_the_pessimistic_actor_without_noise(tmp_path, monkeypat
     env = oparl.make_env("Pendulum-v1", seed=101)
     logged = result["eval_returns"][-1][1]
     for _ in range(2):  # noiseless: the same returns every time
-        assert oparl.evaluate(result["actor"], env, 2, seed=101).mean() == pytest.approx(logged, abs=1e-9)
-    assert oparl.evaluate(result["optimistic_actor"], env, 2, seed=101).mean() != pytest.approx(logged, abs=1e-3)
+        assert oparl.evaluate(result["actor"], [env], 2, [101]).mean() == pytest.approx(logged, abs=1e-9)
+    assert oparl.evaluate(result["optimistic_actor"], [env], 2, [101]).mean() != pytest.approx(logged, abs=1e-3)
 
 
 def test_ablation_flags_change_what_they_say(tmp_path, monkeypatch):

@@ -25,8 +25,8 @@ from conftest import (
 
 
 # (total steps, first step of learning, checkpoint frequency) of the kill-and-resume runs, by the phase in which the
-# killed run's checkpoint falls. "learning": at the first episode end from step 500, where learning starts. "random":
-# the first episode end from step 1000 (Hopper's random episodes end within ~100 steps), before learning starts at
+# killed run's checkpoint falls. "learning": at step 500, where learning starts (the on-policy scripts: the first
+# episode end from there), mid-episode where the env is Hopper's. "random": at step 1000, before learning starts at
 # 1200; the resumed run then acts at random from the action space's restored generator for its first steps.
 PHASES = {"learning": (1500, 500, 500), "random": (2000, 1200, 1000)}
 # the on-policy scripts run ~1000 steps/s: a longer run keeps the kill (up to 1 s after the checkpoint) before its end
@@ -141,10 +141,10 @@ def test_a_checkpoint_restores_the_next_draw_of_every_random_generator(script, e
 
     env.reset(seed=3)
     draws()  # every generator moved on from its seed
-    module.write_checkpoint(str(tmp_path / "c.pt"), module.snapshot(module.Args(env_id=env_id), env, 0, {}, {}))
+    module.write_checkpoint(str(tmp_path / "c.pt"), module.snapshot(module.Args(env_id=env_id), [env], 0, {}, {}))
     expected, after = draws(), draws()
     assert expected != after  # each call draws anew
-    module.restore(torch.load(tmp_path / "c.pt", weights_only=True), env, {}, {})
+    module.restore(torch.load(tmp_path / "c.pt", weights_only=True), [env], {}, {})
     assert draws() == expected
 
 
@@ -212,7 +212,7 @@ def test_checkpoint_loads_without_running_code(script, finished_run):
     checkpoint = torch.load(path, weights_only=True)
     assert checkpoint["global_step"] == 400 and checkpoint["script"] == f"{script}_continuous_action.py"
     if script in OFF_POLICY:
-        assert checkpoint["buffer"]["rows"].shape[0] == 400
+        assert checkpoint["buffer"]["rows"].shape[:2] == (1, 400)  # one seed's 400 rows
     else:
         assert checkpoint["rollout"]["obs"].shape[0] == 256
 

@@ -23,7 +23,7 @@ def filled_buffer(capacity=10, rows=7):
 def test_replay_buffer_samples_whole_transitions():
     torch.manual_seed(0)
     rb = filled_buffer()
-    batch = rb.sample(500)
+    batch = td3.Batch(*(field[0] for field in rb.sample(500)))  # the one seed's batch
     i = batch.observations[:, 0]
     assert set(i.tolist()) == set(range(7))
     torch.testing.assert_close(batch.observations, i[:, None].expand(-1, OBS_DIM))
@@ -38,7 +38,7 @@ def test_replay_buffer_overwrites_the_oldest_rows_when_full():
     torch.manual_seed(0)
     rb = filled_buffer(capacity=5, rows=7)
     assert rb.size == 5 and rb.pos == 2
-    assert set(rb.sample(500).observations[:, 0].tolist()) == {2, 3, 4, 5, 6}
+    assert set(rb.sample(500).observations[0, :, 0].tolist()) == {2, 3, 4, 5, 6}
 
 
 def test_q_ensemble_members_are_independent_mlps():

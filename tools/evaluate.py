@@ -67,7 +67,7 @@ def load_policy(script, algo: str, model_path: str, env):
         actor.load_state_dict(saved["actor"])
     except (RuntimeError, KeyError) as e:  # another algorithm's or another task's model
         fail(f"{model_path!r} does not fit {algo} on this task ({type(e).__name__}: {str(e).splitlines()[0]})")
-    return lambda eval_env, episodes, seed: script.evaluate(actor, eval_env, episodes, seed)
+    return lambda eval_env, episodes, seed: script.evaluate(actor, [eval_env], episodes, [seed])[0]  # the one seed's
 
 
 def main(argv=None) -> np.ndarray:

@@ -1,0 +1,331 @@
+"""--num-seeds: several seeds trained side by side in one process, their networks stacked. The seeds must stay
+independent runs (nothing one seed sees reaches another), each seed's update must be the one-seed update, and each
+seed must be an ordinary run to every tool: its own folder, evaluations, checkpoint, resume and saved model."""
+
+import copy
+import inspect
+import os
+import random
+import signal
+import subprocess
+import time
+
+import numpy as np
+import pytest
+import torch
+import torch.nn as nn
+
+from conftest import OFF_POLICY, SCRIPTS, cli_flags, load, scalars, script_command, small_args
+
+
+def accepts_many_seeds(script) -> bool:
+    module = load(script)
+    if "num_seeds" not in inspect.signature(module.Args).parameters:
+        return False
+    try:
+        module.check_args(module.Args(num_seeds=2))
+    except SystemExit:
+        return False
+    return True
+
+
+MANY_SEEDS = [script for script in SCRIPTS if accepts_many_seeds(script)]
+ENV = "dm_control/cartpole-swingup-v0"
+
+
+def test_the_paper_algorithms_train_many_seeds():
+    assert {"td3", "oparl", "sac"} <= set(MANY_SEEDS)
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    """main's result after a short run, per (script, num_seeds), made once per test process."""
+    cache = {}
+
+    def get(script, num_seeds):
+        if (script, num_seeds) not in cache:
+            module = load(script)
+            cwd = os.getcwd()
+            os.chdir(tmp_path_factory.mktemp(f"{script}{num_seeds}"))
+            try:
+                args = small_args(module, env_id=ENV, num_seeds=num_seeds, total_timesteps=400, eval_frequency=400)
+                args.run_name = "run{seed}"
+                cache[script, num_seeds] = module.main(args)
+            finally:
+                os.chdir(cwd)
+        return cache[script, num_seeds]
+
+    return get
+
+
+def stacked_state(result) -> dict:
+    """Copies of every network's and optimizer's state in main's result, and of the tensors it returns and the
+    optimizers' parameters (SAC's alpha and log_alpha)."""
+    optimizers = {k: v for k, v in result.items() if isinstance(v, torch.optim.Optimizer)}
+    tensors = [t for t in result.values() if isinstance(t, torch.Tensor)]
+    tensors += [p for opt in optimizers.values() for group in opt.param_groups for p in group["params"]]
+    return {
+        "nets": copy.deepcopy({k: n.state_dict() for k, n in modules(result).items()}),
+        "opt": copy.deepcopy({k: o.state_dict() for k, o in optimizers.items()}),
+        "tensors": [(t, t.detach().clone()) for t in tensors],
+    }
+
+
+def load_state(result, state):
+    for name, sd in state["nets"].items():
+        result[name].load_state_dict(sd)
+    for name, sd in state["opt"].items():
+        result[name].load_state_dict(copy.deepcopy(sd))
+    with torch.no_grad():
+        for tensor, value in state["tensors"]:
+            tensor.copy_(value)
+
+
+def one_update(result, batch):
+    """One training iteration through main's own update, with every optional part on (policy step, target step)."""
+    flags = len(inspect.signature(result["update"]).parameters) - 1
+    torch.manual_seed(0)
+    return result["update"](batch, *[True] * flags)
+
+
+def modules(result) -> dict:
+    """The networks in main's result, each once (OPARL returns its pessimistic actor also as "actor")."""
+    found = {}
+    for name, net in result.items():
+        if isinstance(net, nn.Module) and all(net is not other for other in found.values()):
+            found[name] = net
+    return found
+
+
+def params_of(result) -> dict:
+    return {f"{name}.{p}": t for name, net in modules(result).items() for p, t in net.named_parameters()}
+
+
+def seed_params(result, k, num_seeds) -> dict:
+    """Seed k's cut of every network's parameters."""
+    return {f"{name}.{p}": t.chunk(num_seeds)[k] for name, net in modules(result).items() for p, t in net.named_parameters()}
+
+
+@pytest.mark.parametrize("script", [pytest.param(s, marks=pytest.mark.xdist_group(f"many-{s}")) for s in MANY_SEEDS])
+def test_changing_one_seeds_data_and_weights_leaves_the_others_bit_identical(script, short_run):
+    result = short_run(script, 3)
+    before = stacked_state(result)
+    batch = result["rb"].sample(64)
+    one_update(result, batch)
+    reference = {k: [t.clone() for t in seed_params(result, k, 3).values()] for k in range(3)}
+
+    load_state(result, before)
+    with torch.no_grad():  # seed 2 (index 1) gets other weights and other data
+        for net in modules(result).values():
+            for p in net.parameters():
+                p.chunk(3)[1].mul_(1.5)
+    changed = type(batch)(*(field.clone() for field in batch))
+    changed.rewards[1] += 10.0
+    changed.observations[1] *= -1
+    one_update(result, changed)
+    for k in (0, 2):
+        for name, a, b in zip(seed_params(result, k, 3), reference[k], seed_params(result, k, 3).values()):
+            assert torch.equal(a, b), f"seed index {k}'s {name} changed with seed index 1's data"
+    assert any(not torch.equal(a, b) for a, b in zip(reference[1], seed_params(result, 1, 3).values()))
+
+
+class Recorded:
+    """Records what a random function returns (stacked seeds), then replays one seed's cut of it, call by call."""
+
+    def __init__(self, fn):
+        self.fn, self.calls, self.seed = fn, [], None
+
+    def __call__(self, *args, **kwargs):
+        if self.seed is None:
+            out = self.fn(*args, **kwargs)
+            self.calls.append(out)
+            return out
+        return self.calls.pop(0)[self.seed : self.seed + 1]
+
+
+@pytest.mark.parametrize("script", [pytest.param(s, marks=pytest.mark.xdist_group(f"many-{s}")) for s in MANY_SEEDS])
+def test_a_seeds_update_is_the_one_seed_update_on_the_same_batch_and_noise(script, short_run, monkeypatch):
+    module = load(script)
+    many, one = short_run(script, 3), short_run(script, 1)
+    nets = modules(many)
+    optimizers = {k: v for k, v in many.items() if isinstance(v, torch.optim.Optimizer)}
+    batch = many["rb"].sample(64)
+    randn_like = Recorded(torch.randn_like)
+    standard_normal = Recorded(torch.distributions.normal._standard_normal)
+    monkeypatch.setattr(torch, "randn_like", randn_like)
+    monkeypatch.setattr(torch.distributions.normal, "_standard_normal", standard_normal)
+    # seed index 1's state before the update, as a one-seed checkpoint, into the one-seed run
+    state = module.snapshot(module.Args(), [], 0, nets, optimizers, buffer=many["rb"], eval_returns=[[], [], []])
+    state = {**state, "log_alpha": torch.zeros(3, 1)}
+    share = module.split_seeds(state, nets, ["a", "b", "c"])[1]
+    one_nets = {k: one[k] for k in nets}
+    one_optimizers = {k: one[k] for k in optimizers}
+    module.restore(module.join_seeds([share], one_nets), [], one_nets, one_optimizers)
+    if "alpha" in many:  # SAC's entropy coefficient: seed index 1's into the one-seed run
+        with torch.no_grad():
+            one["alpha"].copy_(many["alpha"][1:2])
+            one["a_optimizer"].param_groups[0]["params"][0].copy_(many["a_optimizer"].param_groups[0]["params"][0][1:2])
+
+    one_update(many, batch)
+    randn_like.seed = standard_normal.seed = 1
+    one_update(one, type(batch)(*(field[1:2] for field in batch)))
+    assert randn_like.calls == [] and standard_normal.calls == [], "the one-seed update drew other noise"
+    for (name, a), b in zip(seed_params(many, 1, 3).items(), seed_params(one, 0, 1).values()):
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=2e-5, msg=f"{name}: seed 2 of 3 against the same seed alone")
+    # The gradients too: a mean over seeds instead of the sum would make them a third (a difference the weights hide,
+    # as Adam divides by the gradients' scale). The critics' agree to rounding; the actors' are taken through critics
+    # already updated, whose last bits differ between the kernels, so they agree to a little less.
+    checked = 0
+    for (name, p_many), p_one in zip(params_of(many).items(), params_of(one).values()):
+        if p_one.grad is not None:
+            error = (p_many.grad.chunk(3)[1] - p_one.grad).abs().max() / p_one.grad.abs().max()
+            assert error < (1e-4 if name.startswith("qf.") else 1e-2), f"{name}'s gradient differs by {error:.1e}"
+            checked += name.startswith("qf.")
+    assert checked
+
+
+def test_one_seed_layers_are_nn_linear_bit_for_bit():
+    """The stacked layer of one seed draws nn.Linear's initial weights and uses its kernel, which is why a run with
+    --num-seeds 1 gives the single-seed series exactly."""
+    for script in OFF_POLICY:
+        module = load(script)
+        if not hasattr(module, "SeedLinear"):
+            continue
+        torch.manual_seed(0)
+        stacked = module.SeedLinear(17, 32)
+        torch.manual_seed(0)
+        linear = nn.Linear(17, 32)
+        assert torch.equal(stacked.weight[0], linear.weight) and torch.equal(stacked.bias[0], linear.bias)
+        x = torch.randn(5, 17)
+        assert torch.equal(stacked(x), linear(x))
+
+
+@pytest.mark.parametrize("script", MANY_SEEDS)
+def test_each_seed_is_an_ordinary_run(script, tmp_path):
+    """Own folder, evaluation schedule and saved model; the saved actor is that seed's and evaluates to its logged
+    return; every seed learns its own weights."""
+    module = load(script)
+    flags = cli_flags(script, total_timesteps=600, learning_starts=300, batch_size=64, eval_frequency=300, eval_episodes=1)
+    result = subprocess.run(
+        script_command(
+            script, "--env-id", ENV, *flags, "--seed", "4", "--num-seeds", "2", "--run-name", "r{seed}", "--save-model"
+        ),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    assert sorted(os.listdir(tmp_path / "runs")) == ["r4", "r5"]
+    actors = []
+    for seed in (4, 5):
+        run_dir = tmp_path / "runs" / f"r{seed}"
+        logged = scalars(str(run_dir))["eval/episodic_return"]
+        assert [step for step, _ in logged] == [0, 300, 600]
+        saved = torch.load(run_dir / f"{script}_continuous_action.cleanrl_model", weights_only=True)
+        env = module.make_env(ENV, seed + 100)
+        actor = module.Actor(int(np.prod(env.observation_space.shape)), env.action_space)
+        actor.load_state_dict(saved["actor"])  # a one-seed actor, as a single-seed run saves it
+        returns = module.evaluate(actor, [env], 1, [seed + 100])
+        assert returns.mean() == pytest.approx(logged[-1][1], rel=1e-4)
+        actors.append(saved["actor"])
+    assert any(not torch.equal(actors[0][k], actors[1][k]) for k in actors[0])
+
+
+# (script, env): a MuJoCo task resumes mid-episode (its seeds' episodes end at different steps)
+KILL_CASES = [("oparl", "Hopper-v4"), ("sac", ENV)]
+
+
+@pytest.mark.parametrize("script, env_id", [c for c in KILL_CASES if c[0] in MANY_SEEDS])
+def test_a_killed_many_seed_process_resumes_identical(script, env_id, tmp_path):
+    flags = cli_flags(script, total_timesteps=1500, learning_starts=500, batch_size=64, eval_frequency=500, eval_episodes=1)
+    flags = ["--env-id", env_id, *flags, "--num-seeds", "2", "--save-model"]
+
+    def start(name, *extra):
+        log = open(tmp_path / f"{name}.log", "w")
+        command = script_command(script, *flags, "--run-name", name + "{seed}", *extra)
+        return subprocess.Popen(command, cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
+
+    full, killed = start("full"), start("killed", "--checkpoint-frequency", "550")
+    checkpoints = [tmp_path / "runs" / f"killed{seed}" / "checkpoint.pt" for seed in (1, 2)]
+    deadline = time.time() + 240
+    while not all(c.exists() for c in checkpoints) and killed.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert all(c.exists() for c in checkpoints), (tmp_path / "killed.log").read_text()
+    time.sleep(random.uniform(0.0, 1.0))
+    killed.send_signal(signal.SIGKILL)
+    assert killed.wait() == -signal.SIGKILL, "the run ended before the kill: the comparison would test nothing"
+    killed_at = torch.load(checkpoints[0], weights_only=True)["global_step"]
+    assert killed_at < 1500
+    resumed = subprocess.run(
+        script_command(script, "--resume", "runs/killed2", "--save-model"),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert full.wait(timeout=300) == 0
+    for seed in (1, 2):
+        full_dir, resumed_dir = tmp_path / "runs" / f"full{seed}", tmp_path / "runs" / f"killed{seed}"
+        full_log, resumed_log = scalars(str(full_dir)), scalars(str(resumed_dir))
+        assert resumed_log["eval/episodic_return"] == full_log["eval/episodic_return"]
+        assert resumed_log["losses/qf_loss"] == full_log["losses/qf_loss"]
+        model = f"{script}_continuous_action.cleanrl_model"
+        a, b = (torch.load(d / model, weights_only=True)["actor"] for d in (full_dir, resumed_dir))
+        assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.fixture(scope="module")
+def two_seed_run(tmp_path_factory):
+    """A finished, checkpointed two-seed run of TD3 (or the first script that trains many seeds)."""
+    cwd = tmp_path_factory.mktemp("two")
+    script = MANY_SEEDS[0]
+    flags = cli_flags(script, total_timesteps=400, learning_starts=200, batch_size=32, eval_frequency=400, eval_episodes=1)
+    command = script_command(script, "--env-id", "Pendulum-v1", *flags, "--num-seeds", "2", "--run-name", "s{seed}")
+    result = subprocess.run([*command, "--checkpoint-frequency", "200"], cwd=cwd, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    return script, cwd
+
+
+@pytest.mark.xdist_group("two-seed-run")
+def test_a_kill_between_the_seeds_checkpoint_renames_is_finished_on_resume(two_seed_run, monkeypatch):
+    script, cwd = two_seed_run
+    module = load(script)
+    monkeypatch.chdir(cwd)
+    second = cwd / "runs" / "s2" / "checkpoint.pt"
+    new = torch.load(second, weights_only=True)
+    os.replace(second, str(second) + ".tmp")  # seed 2's new checkpoint written but not yet renamed ...
+    torch.save({**new, "global_step": new["global_step"] - 100}, second)  # ... over its old one
+    checkpoints = module.load_checkpoints("runs/s1")
+    assert [c["global_step"] for c in checkpoints] == [new["global_step"]] * 2
+    assert torch.load(second, weights_only=True)["global_step"] == new["global_step"] and not os.path.exists(
+        str(second) + ".tmp"
+    )
+    torch.save({**new, "global_step": new["global_step"] - 100}, second)  # old, and no new one beside it
+    with pytest.raises(SystemExit, match="holds no checkpoint at step"):
+        module.load_checkpoints("runs/s1")
+    torch.save(new, second)
+
+
+def refusal(script, argv, monkeypatch, cwd):
+    monkeypatch.chdir(cwd)
+    module = load(script)
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(module.parse_args(argv))
+    message = str(exit_info.value)
+    assert message.startswith("error: ") and "\n" not in message, message
+    return message
+
+
+@pytest.mark.xdist_group("two-seed-run")
+def test_bad_many_seed_input_is_one_line(two_seed_run, monkeypatch, tmp_path):
+    script, cwd = two_seed_run
+    assert "--num-seeds must be >= 1" in refusal(script, ["--num-seeds", "0"], monkeypatch, tmp_path)
+    assert "write {seed}" in refusal(script, ["--num-seeds", "2", "--run-name", "same"], monkeypatch, tmp_path)
+    assert "--track" in refusal(script, ["--num-seeds", "2", "--track"], monkeypatch, tmp_path)
+    message = refusal(script, ["--resume", "runs/s1", "--num-seeds", "3"], monkeypatch, cwd)
+    assert "--num-seeds 3 (run: 2)" in message
+    assert "--seed 7 (run: 1)" in refusal(script, ["--resume", "runs/s2", "--seed", "7"], monkeypatch, cwd)
+    for other in [s for s in OFF_POLICY if s not in MANY_SEEDS]:
+        assert "--num-seeds" in refusal(other, ["--num-seeds", "2"], monkeypatch, tmp_path)
