@@ -231,3 +231,25 @@ def test_export_scalars_writes_any_tag_of_finished_runs(tmp_path):
         "rnd,Pendulum-v1,2,0,0.5",
         "rnd,Pendulum-v1,2,2048,0.25",
     ]
+
+
+def test_welch_compares_final_returns_task_by_task(tmp_path):
+    from scipy import stats
+
+    path = tmp_path / "final_returns.csv"
+    rows = ["algo,env_id,seed,steps,final_return"]
+    a, b = [100.0, 110.0, 130.0], [50.0, 52.0, 61.0]
+    rows += [f"x,cartpole,{i},1000,{v}" for i, v in enumerate(a)] + [f"y,cartpole,{i},1000,{v}" for i, v in enumerate(b)]
+    rows += ["x,only_x,1,1000,5.0", "x,only_x,2,1000,6.0"]  # a task y did not run: left out
+    path.write_text("\n".join(rows) + "\n")
+    result = tool("welch.py", str(path), "x", "y")
+    assert result.returncode == 0, result.stderr
+    expected = stats.ttest_ind(a, b, equal_var=False)
+    line = next(line for line in result.stdout.splitlines() if line.startswith("| cartpole |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[1] == "3, 113.3 +- 15.3" and cells[3] == "+59.0"
+    assert float(cells[4]) == pytest.approx(expected.statistic, abs=0.01)
+    assert float(cells[6]) == pytest.approx(expected.pvalue, abs=0.001)
+    assert "only_x" not in result.stdout
+    missing = tool("welch.py", str(path), "x", "z")
+    assert missing.returncode != 0 and missing.stderr.strip().count("\n") == 0 and "no runs of 'z'" in missing.stderr
