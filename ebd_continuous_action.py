@@ -866,6 +866,8 @@ def load_checkpoint(run_dir: str, name: str = CHECKPOINT) -> dict:
     if not isinstance(checkpoint, dict) or checkpoint.get("script") != script:
         found = checkpoint.get("script") if isinstance(checkpoint, dict) else None
         fail(f"{path} was not written by {script} (written by {found or 'something else'})")
+    if "envs" not in checkpoint:
+        fail(f"{path} was written by an older {script}, before many-seed runs changed the format; resume it with that version")
     return checkpoint
 
 

@@ -463,7 +463,7 @@ def main(args: Args):
                 writer.add_scalar("charts/SPS", sps, global_step)
             sps_time, sps_step = time.time(), global_step + 1
         pbar.update(1)
-        if args.checkpoint_frequency and global_step + 1 >= next_checkpoint:
+        if args.checkpoint_frequency and next_checkpoint <= global_step + 1 < args.total_timesteps:  # the last one: below
             write_checkpoints(run_dirs, state(global_step + 1))
             next_checkpoint = global_step + 1 + args.checkpoint_frequency
 
@@ -530,8 +530,8 @@ def check_args(args: Args):
         (args.checkpoint_frequency >= 0, f"--checkpoint-frequency must be >= 0, got {args.checkpoint_frequency}"),
         (args.num_seeds >= 1, f"--num-seeds must be >= 1, got {args.num_seeds}"),
         (
-            args.num_seeds == 1 or not args.run_name or "{seed}" in args.run_name,
-            f"--run-name {args.run_name} names one folder for {args.num_seeds} seeds; write {{seed}} where each seed's number goes",
+            args.num_seeds == 1 or not args.run_name or "{seed}" in os.path.basename(args.run_name),
+            f"--run-name {args.run_name} names one folder for {args.num_seeds} seeds; write {{seed}} in its last part, where each seed's number goes",
         ),
         (args.num_seeds == 1 or not args.track, "--track follows one run per process; drop it or use --num-seeds 1"),
     ]
@@ -858,6 +858,8 @@ def load_checkpoint(run_dir: str, name: str = CHECKPOINT) -> dict:
     if not isinstance(checkpoint, dict) or checkpoint.get("script") != script:
         found = checkpoint.get("script") if isinstance(checkpoint, dict) else None
         fail(f"{path} was not written by {script} (written by {found or 'something else'})")
+    if "envs" not in checkpoint:
+        fail(f"{path} was written by an older {script}, before many-seed runs changed the format; resume it with that version")
     return checkpoint
 
 
@@ -962,14 +964,17 @@ def load_checkpoints(run_dir: str) -> list:
     """The checkpoints of the seeds that trained in one process with the run in run_dir, at one step, in seed order."""
     first = load_checkpoint(run_dir)
     run_dirs = [os.path.join(os.path.dirname(os.path.normpath(run_dir)), name) for name in first["run_names"]]
-    checkpoints = [load_checkpoint(d) for d in run_dirs]
-    step = max(checkpoint["global_step"] for checkpoint in checkpoints)
+    checkpoints = [load_checkpoint(d) if os.path.isfile(os.path.join(d, CHECKPOINT)) else None for d in run_dirs]
+    step = max(checkpoint["global_step"] for checkpoint in checkpoints if checkpoint)
     for k, d in enumerate(run_dirs):
-        if checkpoints[k]["global_step"] < step:  # killed between write_checkpoints()' renames: finish them
-            if not os.path.isfile(os.path.join(d, CHECKPOINT + ".tmp")):
+        if checkpoints[k] is None or checkpoints[k]["global_step"] < step:  # killed between the renames: finish them
+            tmp = os.path.join(d, CHECKPOINT + ".tmp")
+            if not os.path.isfile(tmp) or load_checkpoint(d, CHECKPOINT + ".tmp")["global_step"] != step:
                 fail(f"--resume {run_dir}: {d} holds no checkpoint at step {step}, the step of the seeds beside it")
             checkpoints[k] = load_checkpoint(d, CHECKPOINT + ".tmp")
-            os.replace(os.path.join(d, CHECKPOINT + ".tmp"), os.path.join(d, CHECKPOINT))
+            os.replace(tmp, os.path.join(d, CHECKPOINT))
+        if checkpoints[k]["seed_index"] != k:
+            fail(f"--resume {run_dir}: {d} holds the checkpoint of another seed of the process")
     return checkpoints
 
 

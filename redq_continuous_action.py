@@ -300,17 +300,20 @@ def evaluate(actor: Actor, envs: list, num_episodes: int, seeds: list) -> np.nda
     returns = np.zeros((len(envs), num_episodes))
     obs = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)]
     episode = [0] * len(envs)
-    while min(episode) < num_episodes:
-        actions = actor.get_action(torch.as_tensor(np.stack(obs), device=device))[2].cpu().numpy()
-        for k, env in enumerate(envs):
-            if episode[k] == num_episodes:  # this seed is done; the others go on
-                continue
-            obs[k], reward, terminated, truncated, _ = env.step(actions[k])
-            returns[k, episode[k]] += reward
-            if terminated or truncated:
-                episode[k] += 1
-                if episode[k] < num_episodes:
-                    obs[k], _ = env.reset()
+    # get_action also samples, unused here; with several seeds the number of draws would depend on every seed's
+    # episode lengths and so reach the others' training draws: they come from a copy of the generators instead
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else [], enabled=len(envs) > 1):
+        while min(episode) < num_episodes:
+            actions = actor.get_action(torch.as_tensor(np.stack(obs), device=device))[2].cpu().numpy()
+            for k, env in enumerate(envs):
+                if episode[k] == num_episodes:  # this seed is done; the others go on
+                    continue
+                obs[k], reward, terminated, truncated, _ = env.step(actions[k])
+                returns[k, episode[k]] += reward
+                if terminated or truncated:
+                    episode[k] += 1
+                    if episode[k] < num_episodes:
+                        obs[k], _ = env.reset()
     return returns
 
 
@@ -446,7 +449,7 @@ def main(args: Args):
                 writer.add_scalar("charts/SPS", sps, global_step)
             sps_time, sps_step = time.time(), global_step + 1
         pbar.update(1)
-        if args.checkpoint_frequency and global_step + 1 >= next_checkpoint:
+        if args.checkpoint_frequency and next_checkpoint <= global_step + 1 < args.total_timesteps:  # the last one: below
             write_checkpoints(run_dirs, state(global_step + 1))
             next_checkpoint = global_step + 1 + args.checkpoint_frequency
 
@@ -509,13 +512,10 @@ def check_args(args: Args):
         (args.eval_episodes > 0, f"--eval-episodes must be > 0, got {args.eval_episodes}"),
         (args.checkpoint_frequency >= 0, f"--checkpoint-frequency must be >= 0, got {args.checkpoint_frequency}"),
         (args.num_seeds >= 1, f"--num-seeds must be >= 1, got {args.num_seeds}"),
+        (args.num_seeds == 1, "--num-seeds: REDQ trains one seed per process (its random target subsets are not per seed)"),
         (
-            args.num_seeds == 1,
-            "--num-seeds: REDQ trains one seed per process (its random target subsets are not drawn per seed yet)",
-        ),
-        (
-            args.num_seeds == 1 or not args.run_name or "{seed}" in args.run_name,
-            f"--run-name {args.run_name} names one folder for {args.num_seeds} seeds; write {{seed}} where each seed's number goes",
+            args.num_seeds == 1 or not args.run_name or "{seed}" in os.path.basename(args.run_name),
+            f"--run-name {args.run_name} names one folder for {args.num_seeds} seeds; write {{seed}} in its last part, where each seed's number goes",
         ),
         (args.num_seeds == 1 or not args.track, "--track follows one run per process; drop it or use --num-seeds 1"),
     ]
@@ -842,6 +842,8 @@ def load_checkpoint(run_dir: str, name: str = CHECKPOINT) -> dict:
     if not isinstance(checkpoint, dict) or checkpoint.get("script") != script:
         found = checkpoint.get("script") if isinstance(checkpoint, dict) else None
         fail(f"{path} was not written by {script} (written by {found or 'something else'})")
+    if "envs" not in checkpoint:
+        fail(f"{path} was written by an older {script}, before many-seed runs changed the format; resume it with that version")
     return checkpoint
 
 
@@ -946,14 +948,17 @@ def load_checkpoints(run_dir: str) -> list:
     """The checkpoints of the seeds that trained in one process with the run in run_dir, at one step, in seed order."""
     first = load_checkpoint(run_dir)
     run_dirs = [os.path.join(os.path.dirname(os.path.normpath(run_dir)), name) for name in first["run_names"]]
-    checkpoints = [load_checkpoint(d) for d in run_dirs]
-    step = max(checkpoint["global_step"] for checkpoint in checkpoints)
+    checkpoints = [load_checkpoint(d) if os.path.isfile(os.path.join(d, CHECKPOINT)) else None for d in run_dirs]
+    step = max(checkpoint["global_step"] for checkpoint in checkpoints if checkpoint)
     for k, d in enumerate(run_dirs):
-        if checkpoints[k]["global_step"] < step:  # killed between write_checkpoints()' renames: finish them
-            if not os.path.isfile(os.path.join(d, CHECKPOINT + ".tmp")):
+        if checkpoints[k] is None or checkpoints[k]["global_step"] < step:  # killed between the renames: finish them
+            tmp = os.path.join(d, CHECKPOINT + ".tmp")
+            if not os.path.isfile(tmp) or load_checkpoint(d, CHECKPOINT + ".tmp")["global_step"] != step:
                 fail(f"--resume {run_dir}: {d} holds no checkpoint at step {step}, the step of the seeds beside it")
             checkpoints[k] = load_checkpoint(d, CHECKPOINT + ".tmp")
-            os.replace(os.path.join(d, CHECKPOINT + ".tmp"), os.path.join(d, CHECKPOINT))
+            os.replace(tmp, os.path.join(d, CHECKPOINT))
+        if checkpoints[k]["seed_index"] != k:
+            fail(f"--resume {run_dir}: {d} holds the checkpoint of another seed of the process")
     return checkpoints
 
 

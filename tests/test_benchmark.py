@@ -519,6 +519,8 @@ def test_seeds_per_process_needs_a_script_with_num_seeds(fake):
     ]
     assert os.listdir(fake.work) == []  # refused before anything ran
     assert fake("--algos", "oneseed", *FAKE[2:], "--seeds", "1", "2", "--seeds-per-process", "1", "--dry-run").returncode == 0
+    redq = bench("--algos", "redq", "--seeds", "1", "2", "--seeds-per-process", "2", "--dry-run", cwd=fake.work)
+    assert redq.returncode == 2 and "redq_continuous_action.py trains one seed per process" in redq.stderr
 
 
 def test_a_real_group_trains_its_seeds_in_one_process(tmp_path):

@@ -329,3 +329,33 @@ def test_bad_many_seed_input_is_one_line(two_seed_run, monkeypatch, tmp_path):
     assert "--seed 7 (run: 1)" in refusal(script, ["--resume", "runs/s2", "--seed", "7"], monkeypatch, cwd)
     for other in [s for s in OFF_POLICY if s not in MANY_SEEDS]:
         assert "--num-seeds" in refusal(other, ["--num-seeds", "2"], monkeypatch, tmp_path)
+
+
+@pytest.mark.parametrize("script", MANY_SEEDS)
+def test_evaluating_one_seed_leaves_the_others_random_draws_alone(script):
+    """Evaluation steps every seed's env until the last seed's episodes end (Hopper's end at different steps): what
+    it draws from the global generators must not depend on one seed's policy (SAC's get_action samples)."""
+    module = load(script)
+    envs = [module.make_env("Hopper-v4", seed) for seed in (101, 102)]
+    torch.manual_seed(0)
+    actor = module.Actor(int(np.prod(envs[0].observation_space.shape)), envs[0].action_space, num_seeds=2)
+    after = []
+    for scale in (1.0, 3.0):  # seed index 1's weights, then other ones
+        with torch.no_grad():
+            for p in actor.parameters():
+                p.chunk(2)[1].mul_(scale)
+        torch.manual_seed(1)
+        returns = module.evaluate(actor, envs, 2, [101, 102])
+        after.append((returns[0].tolist(), torch.rand(3).tolist()))
+    assert after[0] == after[1]
+
+
+@pytest.mark.xdist_group("two-seed-run")
+def test_older_checkpoints_and_folder_templates_are_refused_in_one_line(two_seed_run, monkeypatch, tmp_path):
+    script, cwd = two_seed_run
+    message = refusal(script, ["--num-seeds", "2", "--run-name", "seed{seed}/run"], monkeypatch, tmp_path)
+    assert "write {seed} in its last part" in message  # two seeds' folders named alike would collide on resume
+    old = {k: v for k, v in torch.load(cwd / "runs" / "s1" / "checkpoint.pt", weights_only=True).items() if k != "envs"}
+    (tmp_path / "runs" / "old").mkdir(parents=True)
+    torch.save(old, tmp_path / "runs" / "old" / "checkpoint.pt")
+    assert "written by an older" in refusal(script, ["--resume", "runs/old"], monkeypatch, tmp_path)
