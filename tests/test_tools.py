@@ -33,11 +33,30 @@ def test_throughput_reports_a_median_table_with_ratios():
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
     assert "| `td3 --batch-size 32 --bf16` |" in result.stdout
-    assert next(line for line in lines if line.startswith("| `td3 --batch-size 32` |")).endswith("| 1.00x |")
+    first = next(line for line in lines if line.startswith("| `td3 --batch-size 32` |"))
+    assert "| 1.00x |" in first and float(first.split("|")[2]) == pytest.approx(float(first.split("|")[5]))  # one seed
     assert [line.split(":")[0] for line in result.stderr.splitlines() if line.startswith("repeat")] == [
         "repeat 1/1 td3 --batch-size 32",
         "repeat 1/1 td3 --batch-size 32 --bf16",
     ]
+
+
+def test_throughput_counts_the_seeds_an_entry_trains_at_once():
+    sys.path.insert(0, os.path.join(REPO, "tools"))
+    import throughput
+
+    assert throughput.agents_of("oparl") == 1
+    assert throughput.agents_of("oparl --num-seeds 4") == 4
+    assert throughput.agents_of("2x:mkl-avx512:oparl --num-seeds 3") == 6
+    assert throughput.copies_of("2x:oparl --bf16") == (2, "oparl --bf16")
+    result = tool(
+        "throughput.py", "td3 --batch-size 32 --num-seeds 2", "2x:td3 --batch-size 32", "--env-id", "Pendulum-v1",
+        "--learning-starts", "100", "--steps", "40", "--repeats", "1",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    for line in (line for line in result.stdout.splitlines() if line.startswith("| `td3")):
+        cells = line.split("|")
+        assert float(cells[5]) == pytest.approx(2 * float(cells[2]), abs=0.2), line  # both rounded to 0.1
 
 
 def test_throughput_runs_an_entry_prefixed_mkl_avx512_through_the_wrapper():

@@ -11,6 +11,10 @@ it through tools/mkl_avx512.sh (MKL's AVX-512 kernels on AMD CPUs), e.g.
 
     python tools/throughput.py td3 sac oparl "oparl --bf16" --env-id Hopper-v4 --threads 1
     python tools/throughput.py oparl "mkl-avx512:oparl"   # the same script with tools/mkl_avx512.sh
+    python tools/throughput.py oparl "oparl --num-seeds 2" "2x:oparl"   # 2 seeds in one process, 2 processes at once
+
+An entry "Kx:..." runs K copies at once (each copy's steps/s is reported; its agent-steps/s are K times that),
+and an entry with `--num-seeds N` trains N seeds (agent-steps/s: N times its steps/s).
     PYTHONPATH=../cleanrl python tools/throughput.py td3 "../cleanrl-venv/bin/python ../cleanrl/cleanrl/td3_continuous_action.py"
 
 Every entry gets `--env-id E --total-timesteps N --learning-starts L --seed 1 --no-cuda` (no
@@ -62,25 +66,49 @@ def has_random_phase(prefix: list) -> bool:
         return "learning_starts:" in f.read()
 
 
+def copies_of(entry: str) -> tuple[int, str]:
+    """An entry "Kx:..." runs K copies of the rest at once (K single-seed processes beside each other)."""
+    head, _, rest = entry.partition("x:")
+    return (int(head), rest) if head.isdigit() and rest else (1, entry)
+
+
+def agents_of(entry: str) -> int:
+    """Seeds trained at once by an entry: its copies times its --num-seeds."""
+    copies, entry = copies_of(entry)
+    words = shlex.split(entry.removeprefix(MKL_AVX512))
+    return copies * (int(words[words.index("--num-seeds") + 1]) if "--num-seeds" in words[:-1] else 1)
+
+
 def timed_run(
     entry: str, env_id: str, steps: int, learning_starts: int, threads: int, workdir: str, cuda: bool = False
 ) -> float:
+    copies, entry = copies_of(entry)
     prefix, ours = command_of(entry)
     flags = ["--env-id", env_id, "--total-timesteps", str(steps), "--seed", "1"] + ([] if cuda else ["--no-cuda"])
     if has_random_phase(prefix):
         flags += ["--learning-starts", str(learning_starts)]
     if ours:
-        flags += ["--eval-frequency", str(10**9), "--eval-episodes", "1", "--run-name", f"throughput_{time.time_ns()}"]
+        seeds = "_{seed}" if "--num-seeds" in entry else ""  # a run of several seeds names a folder per seed
+        flags += ["--eval-frequency", str(10**9), "--eval-episodes", "1", "--run-name", f"throughput_{time.time_ns()}{seeds}"]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     if env.get("PYTHONPATH"):  # likewise for the entries' imports (e.g. PYTHONPATH=../cleanrl)
         env["PYTHONPATH"] = os.pathsep.join(os.path.abspath(p) for p in env["PYTHONPATH"].split(os.pathsep) if p)
     start = time.perf_counter()
-    result = subprocess.run(prefix + flags, cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    elapsed = time.perf_counter() - start
-    if result.returncode != 0:
-        sys.exit(
-            f"error: {entry!r} failed ({result.returncode}): {result.stderr.strip().splitlines()[-1] if result.stderr.strip() else 'no output'}"
+    runs = []
+    for copy in range(copies):  # each copy its own run folder
+        run_flags = [f + f"_{copy}" if f.startswith("throughput_") else f for f in flags] if copies > 1 else flags
+        runs.append(
+            subprocess.Popen(
+                prefix + run_flags, cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+            )
         )
+    results = [(run.wait(), run.stderr.read()) for run in runs]
+    elapsed = time.perf_counter() - start
+    for returncode, stderr in results:
+        if returncode != 0:
+            sys.exit(
+                f"error: {entry!r} failed ({returncode}): {stderr.strip().splitlines()[-1] if stderr.strip() else 'no output'}"
+            )
     return elapsed
 
 
@@ -151,11 +179,12 @@ def main(argv=None):
     print(
         f"\n{args.env_id}, {args.threads} thread(s), {args.steps} training steps after {args.learning_starts} random ones, median of {args.repeats}; {device}\n"
     )
-    print(f"| entry | steps/s (median) | range | vs `{baseline}` |")
-    print("|---|---|---|---|")
+    print(f"| entry | steps/s (median) | range | vs `{baseline}` | agent-steps/s (steps/s x seeds at once) |")
+    print("|---|---|---|---|---|")
     for entry, values in sps.items():
         median = statistics.median(values)
-        print(f"| `{entry}` | {median:.1f} | {min(values):.1f}-{max(values):.1f} | {median / reference:.2f}x |")
+        agents = f"{median * agents_of(entry):.1f}"
+        print(f"| `{entry}` | {median:.1f} | {min(values):.1f}-{max(values):.1f} | {median / reference:.2f}x | {agents} |")
 
 
 if __name__ == "__main__":
