@@ -953,9 +953,9 @@ def load_checkpoints(run_dir: str) -> list:
     for k, d in enumerate(run_dirs):
         if checkpoints[k] is None or checkpoints[k]["global_step"] < step:  # killed between the renames: finish them
             tmp = os.path.join(d, CHECKPOINT + ".tmp")
-            if not os.path.isfile(tmp) or load_checkpoint(d, CHECKPOINT + ".tmp")["global_step"] != step:
+            checkpoints[k] = load_checkpoint(d, CHECKPOINT + ".tmp") if os.path.isfile(tmp) else None
+            if checkpoints[k] is None or checkpoints[k]["global_step"] != step:
                 fail(f"--resume {run_dir}: {d} holds no checkpoint at step {step}, the step of the seeds beside it")
-            checkpoints[k] = load_checkpoint(d, CHECKPOINT + ".tmp")
             os.replace(tmp, os.path.join(d, CHECKPOINT))
         if checkpoints[k]["seed_index"] != k:
             fail(f"--resume {run_dir}: {d} holds the checkpoint of another seed of the process")

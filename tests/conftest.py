@@ -122,6 +122,17 @@ def assert_ensemble_is_independent_mlps(qf, obs_dim: int, action_dim: int, activ
     return obs, actions, q
 
 
+def refusal(script, argv, cwd, monkeypatch):
+    """The one-line error with which parsing `argv` in `cwd` stops (what the command line prints on stderr)."""
+    monkeypatch.chdir(cwd)
+    module = load(script)
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(module.parse_args(argv))
+    message = str(exit_info.value)
+    assert message.startswith("error: ") and "\n" not in message, message
+    return message
+
+
 def scalars(run_dir: str) -> dict:
     """{tag: [(step, value), ...]} of every scalar in a TensorBoard run folder."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

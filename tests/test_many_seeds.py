@@ -15,7 +15,7 @@ import pytest
 import torch
 import torch.nn as nn
 
-from conftest import OFF_POLICY, SCRIPTS, cli_flags, load, scalars, script_command, small_args
+from conftest import OFF_POLICY, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
 
 
 def accepts_many_seeds(script) -> bool:
@@ -309,27 +309,17 @@ def test_a_kill_between_the_seeds_checkpoint_renames_is_finished_on_resume(two_s
     torch.save(new, second)
 
 
-def refusal(script, argv, monkeypatch, cwd):
-    monkeypatch.chdir(cwd)
-    module = load(script)
-    with pytest.raises(SystemExit) as exit_info:
-        module.main(module.parse_args(argv))
-    message = str(exit_info.value)
-    assert message.startswith("error: ") and "\n" not in message, message
-    return message
-
-
 @pytest.mark.xdist_group("two-seed-run")
 def test_bad_many_seed_input_is_one_line(two_seed_run, monkeypatch, tmp_path):
     script, cwd = two_seed_run
-    assert "--num-seeds must be >= 1" in refusal(script, ["--num-seeds", "0"], monkeypatch, tmp_path)
-    assert "write {seed}" in refusal(script, ["--num-seeds", "2", "--run-name", "same"], monkeypatch, tmp_path)
-    assert "--track" in refusal(script, ["--num-seeds", "2", "--track"], monkeypatch, tmp_path)
-    message = refusal(script, ["--resume", "runs/s1", "--num-seeds", "3"], monkeypatch, cwd)
+    assert "--num-seeds must be >= 1" in refusal(script, ["--num-seeds", "0"], tmp_path, monkeypatch)
+    assert "write {seed}" in refusal(script, ["--num-seeds", "2", "--run-name", "same"], tmp_path, monkeypatch)
+    assert "--track" in refusal(script, ["--num-seeds", "2", "--track"], tmp_path, monkeypatch)
+    message = refusal(script, ["--resume", "runs/s1", "--num-seeds", "3"], cwd, monkeypatch)
     assert "--num-seeds 3 (run: 2)" in message
-    assert "--seed 7 (run: 1)" in refusal(script, ["--resume", "runs/s2", "--seed", "7"], monkeypatch, cwd)
+    assert "--seed 7 (run: 1)" in refusal(script, ["--resume", "runs/s2", "--seed", "7"], cwd, monkeypatch)
     for other in [s for s in OFF_POLICY if s not in MANY_SEEDS]:
-        assert "--num-seeds" in refusal(other, ["--num-seeds", "2"], monkeypatch, tmp_path)
+        assert "--num-seeds" in refusal(other, ["--num-seeds", "2"], tmp_path, monkeypatch)
 
 
 @pytest.mark.parametrize("script", MANY_SEEDS)
@@ -354,9 +344,9 @@ def test_evaluating_one_seed_leaves_the_others_random_draws_alone(script):
 @pytest.mark.xdist_group("two-seed-run")
 def test_older_checkpoints_and_folder_templates_are_refused_in_one_line(two_seed_run, monkeypatch, tmp_path):
     script, cwd = two_seed_run
-    message = refusal(script, ["--num-seeds", "2", "--run-name", "seed{seed}/run"], monkeypatch, tmp_path)
+    message = refusal(script, ["--num-seeds", "2", "--run-name", "seed{seed}/run"], tmp_path, monkeypatch)
     assert "write {seed} in its last part" in message  # two seeds' folders named alike would collide on resume
     old = {k: v for k, v in torch.load(cwd / "runs" / "s1" / "checkpoint.pt", weights_only=True).items() if k != "envs"}
     (tmp_path / "runs" / "old").mkdir(parents=True)
     torch.save(old, tmp_path / "runs" / "old" / "checkpoint.pt")
-    assert "written by an older" in refusal(script, ["--resume", "runs/old"], monkeypatch, tmp_path)
+    assert "written by an older" in refusal(script, ["--resume", "runs/old"], tmp_path, monkeypatch)

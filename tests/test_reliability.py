@@ -19,6 +19,7 @@ from conftest import (
     declared,
     load,
     needs_cuda,
+    refusal,
     scalars,
     script_command,
 )
@@ -176,17 +177,6 @@ def finished_run(tmp_path_factory):
         return cache[script]
 
     return get
-
-
-def refusal(script, argv, cwd, monkeypatch):
-    """The one-line error with which parsing `argv` in `cwd` stops (what the command line prints on stderr)."""
-    monkeypatch.chdir(cwd)
-    module = load(script)
-    with pytest.raises(SystemExit) as exit_info:
-        module.main(module.parse_args(argv))
-    message = str(exit_info.value)
-    assert message.startswith("error: ") and "\n" not in message, message
-    return message
 
 
 # one xdist group per script: its finished run is made once (see finished_run)
