@@ -201,6 +201,83 @@ def test_one_seed_layers_are_nn_linear_bit_for_bit():
         assert torch.equal(stacked(x), linear(x))
 
 
+class Replayed:
+    """Every random draw and every new network's initial weights in one run (stacked seeds), recorded, then replayed
+    into another run as one seed's cut, call by call. Evaluations draw as they like: they are not training."""
+
+    DRAWS = ((torch, "randint"), (torch, "normal"), (torch, "randn_like"), (torch.distributions.normal, "_standard_normal"))
+
+    def __init__(self, monkeypatch, module, num_seeds):
+        self.num_seeds, self.seed, self.paused, self.draws, self.inits = num_seeds, None, False, [], []
+        for owner, name in self.DRAWS:
+            monkeypatch.setattr(owner, name, self.drawn(getattr(owner, name)))
+        for cls in (module.SeedLinear, module.QEnsemble):  # every stacked parameter is made by one of these
+            monkeypatch.setattr(cls, "__init__", self.initialised(cls.__init__))
+        evaluate = module.evaluate
+
+        def unrecorded(*args, **kwargs):
+            self.paused = True
+            try:
+                return evaluate(*args, **kwargs)
+            finally:
+                self.paused = False
+
+        monkeypatch.setattr(module, "evaluate", unrecorded)
+
+    def drawn(self, fn):
+        def draw(*args, **kwargs):
+            if self.paused:
+                return fn(*args, **kwargs)
+            if self.seed is None:
+                self.draws.append((fn, fn(*args, **kwargs)))
+                return self.draws[-1][1]
+            recorded_fn, out = self.draws.pop(0)
+            assert recorded_fn is fn, f"the one-seed run drew {fn.__name__} where the process drew {recorded_fn.__name__}"
+            return out[self.seed : self.seed + 1]
+
+        return draw
+
+    def initialised(self, init):
+        def made(net, *args, **kwargs):
+            init(net, *args, **kwargs)
+            if self.seed is None:
+                self.inits.append([p.detach().clone() for p in net.parameters()])
+            else:
+                with torch.no_grad():
+                    for p, first in zip(net.parameters(), self.inits.pop(0)):
+                        p.copy_(first.chunk(self.num_seeds)[self.seed])
+
+        return made
+
+
+@pytest.mark.parametrize("script", MANY_SEEDS)
+def test_a_seed_of_a_process_trains_as_that_seed_alone_given_the_same_draws(script, tmp_path, monkeypatch):
+    """The whole loop, not one update: with seed 3's random draws and initial weights replayed into a one-seed run,
+    that run's replay buffer, weights and evaluations are seed 3's of the 3-seed process (to the rounding of the
+    batched kernels). Hopper's episodes end at different steps for different seeds, so resets are per seed too."""
+    module = load(script)
+    monkeypatch.chdir(tmp_path)
+    replayed = Replayed(monkeypatch, module, num_seeds=3)
+    args = {
+        "env_id": "Hopper-v4",
+        "total_timesteps": 360,
+        "learning_starts": 300,
+        "eval_frequency": 360,
+        "run_name": "r{seed}",
+    }
+    many = module.main(small_args(module, seed=1, num_seeds=3, **args))
+    replayed.seed = 2
+    one = module.main(small_args(module, seed=3, **args))
+    assert replayed.draws == [] and replayed.inits == [], "the one-seed run drew less than the process's seed did"
+    size = one["rb"].size
+    assert size == many["rb"].size == 360
+    torch.testing.assert_close(one["rb"].storage[0, :size], many["rb"].storage[2, :size], rtol=1e-4, atol=1e-4)
+    for (name, a), b in zip(seed_params(many, 2, 3).items(), seed_params(one, 0, 1).values()):
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=f"{name}: seed 3 of 3 against seed 3 alone")
+    assert [s for s, _ in one["eval_returns"]] == [s for s, _ in many["seeds_eval_returns"][2]] == [0, 360]
+    assert one["eval_returns"][-1][1] == pytest.approx(many["seeds_eval_returns"][2][-1][1], rel=1e-3)
+
+
 @pytest.mark.parametrize("script", MANY_SEEDS)
 def test_each_seed_is_an_ordinary_run(script, tmp_path):
     """Own folder, evaluation schedule and saved model; the saved actor is that seed's and evaluates to its logged
