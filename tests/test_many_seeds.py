@@ -254,7 +254,8 @@ class Replayed:
 def test_a_seed_of_a_process_trains_as_that_seed_alone_given_the_same_draws(script, tmp_path, monkeypatch):
     """The whole loop, not one update: with seed 3's random draws and initial weights replayed into a one-seed run,
     that run's replay buffer, weights and evaluations are seed 3's of the 3-seed process (to the rounding of the
-    batched kernels). Hopper's episodes end at different steps for different seeds, so resets are per seed too."""
+    batched kernels), through evaluations and checkpoints. Hopper's episodes end at different steps for different
+    seeds, so resets are per seed too."""
     module = load(script)
     monkeypatch.chdir(tmp_path)
     replayed = Replayed(monkeypatch, module, num_seeds=3)
@@ -262,7 +263,8 @@ def test_a_seed_of_a_process_trains_as_that_seed_alone_given_the_same_draws(scri
         "env_id": "Hopper-v4",
         "total_timesteps": 360,
         "learning_starts": 300,
-        "eval_frequency": 360,
+        "eval_frequency": 120,
+        "checkpoint_frequency": 50,  # checkpoints are taken mid-training: they must not disturb it
         "run_name": "r{seed}",
     }
     many = module.main(small_args(module, seed=1, num_seeds=3, **args))
@@ -274,8 +276,8 @@ def test_a_seed_of_a_process_trains_as_that_seed_alone_given_the_same_draws(scri
     torch.testing.assert_close(one["rb"].storage[0, :size], many["rb"].storage[2, :size], rtol=1e-4, atol=1e-4)
     for (name, a), b in zip(seed_params(many, 2, 3).items(), seed_params(one, 0, 1).values()):
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=f"{name}: seed 3 of 3 against seed 3 alone")
-    assert [s for s, _ in one["eval_returns"]] == [s for s, _ in many["seeds_eval_returns"][2]] == [0, 360]
-    assert one["eval_returns"][-1][1] == pytest.approx(many["seeds_eval_returns"][2][-1][1], rel=1e-3)
+    assert [s for s, _ in one["eval_returns"]] == [s for s, _ in many["seeds_eval_returns"][2]] == [0, 120, 240, 360]
+    assert [r for _, r in one["eval_returns"]] == pytest.approx([r for _, r in many["seeds_eval_returns"][2]], rel=1e-3)
 
 
 @pytest.mark.parametrize("script", MANY_SEEDS)
