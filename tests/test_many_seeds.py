@@ -131,17 +131,21 @@ def test_changing_one_seeds_data_and_weights_leaves_the_others_bit_identical(scr
 
 
 class Recorded:
-    """Records what a random function returns (stacked seeds), then replays one seed's cut of it, call by call."""
+    """Records what a random function returns (stacked seeds), then replays one seed's cut of it, call by call.
+    Recorders given one `calls` list share it, so that the replay also keeps the order across functions."""
 
-    def __init__(self, fn):
-        self.fn, self.calls, self.seed = fn, [], None
+    def __init__(self, fn, calls=None):
+        self.fn, self.calls, self.seed, self.paused = fn, [] if calls is None else calls, None, False
 
     def __call__(self, *args, **kwargs):
+        if self.paused:
+            return self.fn(*args, **kwargs)
         if self.seed is None:
-            out = self.fn(*args, **kwargs)
-            self.calls.append(out)
-            return out
-        return self.calls.pop(0)[self.seed : self.seed + 1]
+            self.calls.append((self.fn, self.fn(*args, **kwargs)))
+            return self.calls[-1][1]
+        fn, out = self.calls.pop(0)
+        assert fn is self.fn, f"the one-seed run drew {self.fn.__name__} where the process drew {fn.__name__}"
+        return out[self.seed : self.seed + 1]
 
 
 @pytest.mark.parametrize("script", [pytest.param(s, marks=pytest.mark.xdist_group(f"many-{s}")) for s in MANY_SEEDS])
@@ -202,40 +206,37 @@ def test_one_seed_layers_are_nn_linear_bit_for_bit():
 
 
 class Replayed:
-    """Every random draw and every new network's initial weights in one run (stacked seeds), recorded, then replayed
-    into another run as one seed's cut, call by call. Evaluations draw as they like: they are not training."""
+    """Every random draw (through Recorded) and every new network's initial weights in one run (stacked seeds),
+    recorded, then replayed into another run as one seed's cut. Evaluations draw as they like: they are not training."""
 
     DRAWS = ((torch, "randint"), (torch, "normal"), (torch, "randn_like"), (torch.distributions.normal, "_standard_normal"))
 
     def __init__(self, monkeypatch, module, num_seeds):
-        self.num_seeds, self.seed, self.paused, self.draws, self.inits = num_seeds, None, False, [], []
+        self.num_seeds, self.seed, self.draws, self.inits, self.recorders = num_seeds, None, [], [], []
         for owner, name in self.DRAWS:
-            monkeypatch.setattr(owner, name, self.drawn(getattr(owner, name)))
+            self.recorders.append(Recorded(getattr(owner, name), self.draws))
+            monkeypatch.setattr(owner, name, self.recorders[-1])
         for cls in (module.SeedLinear, module.QEnsemble):  # every stacked parameter is made by one of these
             monkeypatch.setattr(cls, "__init__", self.initialised(cls.__init__))
         evaluate = module.evaluate
 
         def unrecorded(*args, **kwargs):
-            self.paused = True
+            self.pause(True)
             try:
                 return evaluate(*args, **kwargs)
             finally:
-                self.paused = False
+                self.pause(False)
 
         monkeypatch.setattr(module, "evaluate", unrecorded)
 
-    def drawn(self, fn):
-        def draw(*args, **kwargs):
-            if self.paused:
-                return fn(*args, **kwargs)
-            if self.seed is None:
-                self.draws.append((fn, fn(*args, **kwargs)))
-                return self.draws[-1][1]
-            recorded_fn, out = self.draws.pop(0)
-            assert recorded_fn is fn, f"the one-seed run drew {fn.__name__} where the process drew {recorded_fn.__name__}"
-            return out[self.seed : self.seed + 1]
+    def pause(self, paused: bool):
+        for recorder in self.recorders:
+            recorder.paused = paused
 
-        return draw
+    def replay(self, seed: int):
+        self.seed = seed
+        for recorder in self.recorders:
+            recorder.seed = seed
 
     def initialised(self, init):
         def made(net, *args, **kwargs):
@@ -268,7 +269,7 @@ def test_a_seed_of_a_process_trains_as_that_seed_alone_given_the_same_draws(scri
         "run_name": "r{seed}",
     }
     many = module.main(small_args(module, seed=1, num_seeds=3, **args))
-    replayed.seed = 2
+    replayed.replay(2)
     one = module.main(small_args(module, seed=3, **args))
     assert replayed.draws == [] and replayed.inits == [], "the one-seed run drew less than the process's seed did"
     size = one["rb"].size

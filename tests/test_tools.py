@@ -1,5 +1,6 @@
 """The measuring tools run and report what they say, on tiny settings."""
 
+import importlib.util
 import os
 import shutil
 import subprocess
@@ -7,7 +8,7 @@ import sys
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, load
 
 
 def tool(name, *flags, timeout=600):
@@ -279,11 +280,7 @@ def test_per_seed_generators_changes_the_training_draws_and_nothing_else(script,
     """Against an ordinary two-seed run with the same flags: the same initial weights (the same first evaluation)
     and the same random phase (it draws nothing from torch), then other updates, their draws now coming from each
     seed's own generator."""
-    import importlib.util
-
     import torch
-
-    from conftest import load
 
     spec = importlib.util.spec_from_file_location("per_seed_generators", os.path.join(REPO, "tools", "per_seed_generators.py"))
     per_seed = importlib.util.module_from_spec(spec)

@@ -7,17 +7,18 @@ comparing its runs with ordinary many-seed runs of the same seeds asks whether s
         --total-timesteps 100000 --run-name "dm_control-cartpole-swingup-v0__td3_x3g__{seed}__100000"
 
 It is not a way to train: its runs cannot be resumed (the generators are not checkpointed, so it refuses
---resume and --checkpoint-frequency). SAC is refused: its evaluations draw too, which a single-seed run takes
-from the generator it trains with.
+--resume and --checkpoint-frequency), and its generators are CPU ones. SAC is refused: its evaluations draw
+too, which a single-seed run takes from the generator it trains with.
 """
 
-import importlib.util
+import importlib
 import os
 import sys
 
 import torch
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
 
 
 def fail(message: str):
@@ -27,15 +28,13 @@ def fail(message: str):
 def main(argv: list):
     if not argv or argv[0] not in ("td3", "oparl"):
         fail("give td3 or oparl first, then the script's flags (SAC's evaluations draw too: not supported)")
-    spec = importlib.util.spec_from_file_location(argv[0], os.path.join(REPO, f"{argv[0]}_continuous_action.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = importlib.import_module(f"{argv[0]}_continuous_action")
     args = module.parse_args(argv[1:])
     if args.resume or args.checkpoint_frequency:
         fail("--resume and --checkpoint-frequency are not supported: the per-seed generators are not checkpointed")
     n = args.num_seeds
     generators = [torch.Generator().manual_seed(seed) for seed in range(args.seed, args.seed + n)]
-    randint, normal, randn_like = torch.randint, torch.normal, torch.randn_like
+    randint, normal = torch.randint, torch.normal
 
     def per_seed(name, shape):
         if shape[0] != n:
