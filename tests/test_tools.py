@@ -275,6 +275,27 @@ def test_welch_compares_final_returns_task_by_task(tmp_path):
     assert missing.returncode != 0 and missing.stderr.strip().count("\n") == 0 and "no runs of 'z'" in missing.stderr
 
 
+def test_welch_averages_a_window_of_evaluations_and_pools_algorithms(tmp_path):
+    from scipy import stats
+
+    path = tmp_path / "eval_series.csv"
+    rows = ["algo,env_id,seed,step,episodic_return"]
+    curves = {("x", 1): [0, 10, 30], ("x", 2): [0, 20, 60], ("y", 1): [0, 1, 3], ("y", 2): [5, 2, 4], ("z", 1): [0, 7, 9]}
+    for (algo, seed), returns in curves.items():
+        rows += [f"{algo},cartpole,{seed},{step},{r}" for step, r in zip((0, 500, 1000), returns)]
+    path.write_text("\n".join(rows) + "\n")
+    result = tool("welch.py", str(path), "x", "y+z", "--steps", "500", "1000")
+    assert result.returncode == 0, result.stderr
+    x, yz = [20.0, 40.0], [2.0, 3.0, 8.0]  # each run's mean over steps 500 and 1000; y and z's runs together
+    line = next(line for line in result.stdout.splitlines() if line.startswith("| cartpole |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[1] == "2, 30.0 +- 14.1" and cells[2].startswith("3, 4.3 +- ")
+    assert float(cells[6]) == pytest.approx(stats.ttest_ind(x, yz, equal_var=False).pvalue, abs=0.001)
+    for bad, message in [(("1000", "500"), "LO is above HI"), (("2000", "3000"), "no runs of 'x'")]:
+        refused = tool("welch.py", str(path), "x", "y", "--steps", *bad)
+        assert refused.returncode != 0 and refused.stderr.strip().count("\n") == 0 and message in refused.stderr
+
+
 @pytest.mark.parametrize("script", ["td3", "oparl"])
 def test_per_seed_generators_changes_the_training_draws_and_nothing_else(script, tmp_path, monkeypatch):
     """Against an ordinary two-seed run with the same flags: the same initial weights (the same first evaluation)

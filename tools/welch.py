@@ -1,10 +1,14 @@
 """Welch's t-test between two algorithms' final returns, task by task, from a final_returns.csv that
 plot_results.py wrote (one row per run: algo, env_id, seed, steps, final_return).
 
-    python tools/welch.py results/many_seeds/final_returns.csv "td3 (num_seeds=3)" td3
+    python tools/welch.py results/many_seeds/final_returns.csv td3_x3 td3
+    python tools/welch.py results/many_seeds/final_returns.csv td3_x3 td3_1x+td3       # pools two algorithms' runs
+    python tools/welch.py results/many_seeds/eval_series.csv td3_x3 td3_1x --steps 50000 100000
 
 prints a markdown table: each task both algorithms ran, the runs of each, their mean and standard deviation,
 the difference of the means, Welch's t, its degrees of freedom and the two-sided p-value (unequal variances).
+With an eval_series.csv (plot_results.py's: algo, env_id, seed, step, episodic_return) and --steps LO HI, a
+run's value is the mean of its evaluations from step LO to step HI (both included) instead of its final one.
 With three runs a side the test only sees large differences; a high p-value is no evidence of equality.
 """
 
@@ -26,6 +30,27 @@ def finals(path: str) -> dict:
     return runs
 
 
+def window_means(path: str, low: int, high: int) -> dict:
+    """{(algo, env_id): [each run's mean evaluation with low <= step <= high]}; runs without one are left out."""
+    windows = defaultdict(list)
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            if low <= int(float(row["step"])) <= high:
+                windows[row["algo"], row["env_id"], row["seed"]].append(float(row["episodic_return"]))
+    runs = defaultdict(list)
+    for (algo, env_id, _), returns in sorted(windows.items()):
+        runs[algo, env_id].append(float(np.mean(returns)))
+    return runs
+
+
+def pool(runs: dict, name: str) -> dict:
+    """Adds the algorithm `name`, 'a+b' for the runs of a and b together, task by task."""
+    for algo, env_id in list(runs):
+        if algo in name.split("+") and name != algo:
+            runs[name, env_id] = runs.get((name, env_id), []) + runs[algo, env_id]
+    return runs
+
+
 def welch_table(runs: dict, a: str, b: str) -> list:
     """One row per task both ran: (env_id, n_a, mean_a, std_a, n_b, mean_b, std_b, t, df, p)."""
     rows = []
@@ -42,18 +67,26 @@ def welch_table(runs: dict, a: str, b: str) -> list:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("final_returns", help="a final_returns.csv written by plot_results.py")
+    parser.add_argument(
+        "final_returns", help="a final_returns.csv (or, with --steps, an eval_series.csv) written by plot_results.py"
+    )
     parser.add_argument("a", help="an algorithm as the CSV names it")
     parser.add_argument("b", help="the algorithm it is compared with")
+    parser.add_argument("--steps", nargs=2, type=int, metavar=("LO", "HI"), help="with an eval_series.csv: the window")
     args = parser.parse_args(argv)
+    kind = "eval_series.csv" if args.steps else "final_returns.csv"
+    if args.steps and args.steps[0] > args.steps[1]:
+        sys.exit(f"error: --steps {args.steps[0]} {args.steps[1]}: LO is above HI")
     try:
-        runs = finals(args.final_returns)
+        runs = window_means(args.final_returns, *args.steps) if args.steps else finals(args.final_returns)
     except (OSError, KeyError, ValueError) as e:
-        sys.exit(f"error: {args.final_returns} is not a readable final_returns.csv ({type(e).__name__}: {e})")
+        sys.exit(f"error: {args.final_returns} is not a readable {kind} ({type(e).__name__}: {e})")
     algos = sorted({algo for algo, _ in runs})
     for name in (args.a, args.b):
-        if name not in algos:
-            sys.exit(f"error: no runs of {name!r} in {args.final_returns}; it has {', '.join(algos)}")
+        missing = [part for part in name.split("+") if part not in algos]
+        if missing:
+            sys.exit(f"error: no runs of {missing[0]!r} in {args.final_returns} (in that window); it has {', '.join(algos)}")
+        pool(runs, name)
     rows = welch_table(runs, args.a, args.b)
     if not rows:
         sys.exit(f"error: no task with at least two runs of both {args.a!r} and {args.b!r}")
