@@ -45,9 +45,10 @@ def window_means(path: str, low: int, high: int) -> dict:
 
 def pool(runs: dict, name: str) -> dict:
     """Adds the algorithm `name`, 'a+b' for the runs of a and b together, task by task."""
-    for algo, env_id in list(runs):
-        if algo in name.split("+") and name != algo:
-            runs[name, env_id] = runs.get((name, env_id), []) + runs[algo, env_id]
+    parts = name.split("+")
+    if len(parts) > 1:
+        for env_id in {env for algo, env in runs if algo in parts}:
+            runs[name, env_id] = [r for part in parts for r in runs.get((part, env_id), [])]
     return runs
 
 
@@ -85,7 +86,8 @@ def main(argv=None):
     for name in (args.a, args.b):
         missing = [part for part in name.split("+") if part not in algos]
         if missing:
-            sys.exit(f"error: no runs of {missing[0]!r} in {args.final_returns} (in that window); it has {', '.join(algos)}")
+            window = " in that --steps window" if args.steps else ""
+            sys.exit(f"error: no runs of {missing[0]!r} in {args.final_returns}{window}; it has {', '.join(algos)}")
         pool(runs, name)
     rows = welch_table(runs, args.a, args.b)
     if not rows:
