@@ -270,6 +270,7 @@ def test_welch_compares_final_returns_task_by_task(tmp_path):
     assert cells[1] == "3, 113.3 +- 15.3" and cells[3] == "+59.0"
     assert float(cells[4]) == pytest.approx(expected.statistic, abs=0.01)
     assert float(cells[6]) == pytest.approx(expected.pvalue, abs=0.001)
+    assert cells[7] == "9/9"  # every run of x above every run of y
     assert "only_x" not in result.stdout
     missing = tool("welch.py", str(path), "x", "z")
     assert missing.returncode != 0 and missing.stderr.strip().count("\n") == 0 and "no runs of 'z'" in missing.stderr
@@ -291,6 +292,7 @@ def test_welch_averages_a_window_of_evaluations_and_pools_algorithms(tmp_path):
     cells = [c.strip() for c in line.strip("|").split("|")]
     assert cells[1] == "2, 30.0 +- 14.1" and cells[2].startswith("3, 4.3 +- ")
     assert float(cells[6]) == pytest.approx(stats.ttest_ind(x, yz, equal_var=False).pvalue, abs=0.001)
+    assert cells[7] == "6/6"
     for bad, message in [(("1000", "500"), "LO is above HI"), (("2000", "3000"), "no runs of 'x'")]:
         refused = tool("welch.py", str(path), "x", "y", "--steps", *bad)
         assert refused.returncode != 0 and refused.stderr.strip().count("\n") == 0 and message in refused.stderr

@@ -6,7 +6,9 @@ plot_results.py wrote (one row per run: algo, env_id, seed, steps, final_return)
     python tools/welch.py results/many_seeds/eval_series.csv td3_x3 td3_1x --steps 50000 100000
 
 prints a markdown table: each task both algorithms ran, the runs of each, their mean and standard deviation,
-the difference of the means, Welch's t, its degrees of freedom and the two-sided p-value (unequal variances).
+the difference of the means, Welch's t, its degrees of freedom, the two-sided p-value (unequal variances), and
+in how many of the (a run, b run) pairs a's run is higher (with 3 runs each, 9/9 happens one time in twenty
+for two equal algorithms).
 With an eval_series.csv (plot_results.py's: algo, env_id, seed, step, episodic_return) and --steps LO HI, a
 run's value is the mean of its evaluations from step LO to step HI (both included) instead of its final one.
 With three runs a side the test only sees large differences; a high p-value is no evidence of equality.
@@ -53,7 +55,8 @@ def pool(runs: dict, name: str) -> dict:
 
 
 def welch_table(runs: dict, a: str, b: str) -> list:
-    """One row per task both ran: (env_id, n_a, mean_a, std_a, n_b, mean_b, std_b, t, df, p)."""
+    """One row per task both ran: (env_id, n_a, mean_a, std_a, n_b, mean_b, std_b, t, df, p, above), `above` the
+    number of (a run, b run) pairs in which a's run is higher (all n_a * n_b of them: a's every run above b's every one)."""
     rows = []
     for env_id in sorted({env for algo, env in runs if algo == a} & {env for algo, env in runs if algo == b}):
         x, y = np.array(runs[a, env_id]), np.array(runs[b, env_id])
@@ -62,7 +65,8 @@ def welch_table(runs: dict, a: str, b: str) -> list:
         t, p = stats.ttest_ind(x, y, equal_var=False)
         vx, vy = x.var(ddof=1) / len(x), y.var(ddof=1) / len(y)
         df = (vx + vy) ** 2 / (vx**2 / (len(x) - 1) + vy**2 / (len(y) - 1)) if vx + vy > 0 else float("nan")
-        rows.append((env_id, len(x), x.mean(), x.std(ddof=1), len(y), y.mean(), y.std(ddof=1), float(t), df, float(p)))
+        above = int((x[:, None] > y[None, :]).sum())
+        rows.append((env_id, len(x), x.mean(), x.std(ddof=1), len(y), y.mean(), y.std(ddof=1), float(t), df, float(p), above))
     return rows
 
 
@@ -92,11 +96,12 @@ def main(argv=None):
     rows = welch_table(runs, args.a, args.b)
     if not rows:
         sys.exit(f"error: no task with at least two runs of both {args.a!r} and {args.b!r}")
-    print(f"| task | {args.a} (n, mean +- std) | {args.b} (n, mean +- std) | difference | Welch t | df | p |")
-    print("|---|---|---|---|---|---|---|")
-    for env_id, na, ma, sa, nb, mb, sb, t, df, p in rows:
+    print(f"| task | {args.a} (n, mean +- std) | {args.b} (n, mean +- std) | difference | Welch t | df | p | {args.a} above |")
+    print("|---|---|---|---|---|---|---|---|")
+    for env_id, na, ma, sa, nb, mb, sb, t, df, p, above in rows:
         print(
-            f"| {env_id} | {na}, {ma:.1f} +- {sa:.1f} | {nb}, {mb:.1f} +- {sb:.1f} | {ma - mb:+.1f} | {t:.2f} | {df:.1f} | {p:.3f} |"
+            f"| {env_id} | {na}, {ma:.1f} +- {sa:.1f} | {nb}, {mb:.1f} +- {sb:.1f} | {ma - mb:+.1f} | {t:.2f} | {df:.1f} | {p:.3f}"
+            f" | {above}/{na * nb} |"
         )
     return rows
 
