@@ -40,6 +40,8 @@ def test_throughput_reports_a_median_table_with_ratios():
         "repeat 1/1 td3 --batch-size 32",
         "repeat 1/1 td3 --batch-size 32 --bf16",
     ]
+    warmups = [line.split(":")[0] for line in result.stderr.splitlines() if line.startswith("warm-up")]
+    assert warmups == ["warm-up td3 --batch-size 32", "warm-up td3 --batch-size 32 --bf16"]  # each entry's, as it ends
 
 
 def test_throughput_counts_the_seeds_an_entry_trains_at_once():

@@ -156,7 +156,8 @@ def main(argv=None):
     sps = {entry: [] for entry in args.entries}
     with tempfile.TemporaryDirectory() as workdir:
         for entry in args.entries:  # warm-up: file caches, first imports
-            timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda)
+            took = timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda)
+            print(f"warm-up {entry}: {took:.1f} s", file=sys.stderr, flush=True)  # a slow or stuck entry shows at once
         for repeat in range(args.repeats):
             for entry in args.entries:
                 short = timed_run(
