@@ -57,6 +57,7 @@ NOT_ALGORITHM = {
     "capture_video",
     "save_model",
     "cuda",
+    "cudagraphs",  # replays the same update: a seed's --cudagraphs run learns as its eager one (tests/test_cudagraphs.py)
     "torch_deterministic",
 }
 SMOOTHING = 10  # evaluations: 50k steps of a 1M-step run at one evaluation per 5000

@@ -411,3 +411,12 @@ def test_a_committed_folder_regenerates_byte_for_byte(tmp_path):
 def test_too_few_bootstrap_resamples_are_refused(sweep, tmp_path):
     with pytest.raises(SystemExit, match="--bootstrap-reps must be >= 100"):
         pr.main([sweep, "--out", str(tmp_path), "--bootstrap-reps", "10"])
+
+
+def test_flags_a_run_may_change_on_resume_do_not_name_an_algorithm():
+    # a flag that a resumed run may change (it does not change what is learned) must not split one algorithm's runs
+    # into two rows, e.g. OPARL's GPU runs with --cudagraphs beside its CPU runs
+    from conftest import SCRIPTS, load
+
+    for script in SCRIPTS:
+        assert load(script).RESUMABLE_FLAGS <= pr.NOT_ALGORITHM, script

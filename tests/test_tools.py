@@ -263,6 +263,7 @@ def test_welch_compares_final_returns_task_by_task(tmp_path):
     a, b = [100.0, 110.0, 130.0], [50.0, 52.0, 61.0]
     rows += [f"x,cartpole,{i},1000,{v}" for i, v in enumerate(a)] + [f"y,cartpole,{i},1000,{v}" for i, v in enumerate(b)]
     rows += ["x,only_x,1,1000,5.0", "x,only_x,2,1000,6.0"]  # a task y did not run: left out
+    rows += [f"{algo},overlap,{i},1000,{v}" for algo, vs in (("x", [1, 5, 9]), ("y", [2, 5, 8])) for i, v in enumerate(vs)]
     path.write_text("\n".join(rows) + "\n")
     result = tool("welch.py", str(path), "x", "y")
     assert result.returncode == 0, result.stderr
@@ -273,6 +274,8 @@ def test_welch_compares_final_returns_task_by_task(tmp_path):
     assert float(cells[4]) == pytest.approx(expected.statistic, abs=0.01)
     assert float(cells[6]) == pytest.approx(expected.pvalue, abs=0.001)
     assert cells[7] == "9/9"  # every run of x above every run of y
+    overlap = next(line for line in result.stdout.splitlines() if line.startswith("| overlap |"))
+    assert overlap.strip("|").split("|")[7].strip() == "4/9"  # 5 > 2, 9 > 2, 5, 8; the tie 5 = 5 counts for neither
     assert "only_x" not in result.stdout
     missing = tool("welch.py", str(path), "x", "z")
     assert missing.returncode != 0 and missing.stderr.strip().count("\n") == 0 and "no runs of 'z'" in missing.stderr

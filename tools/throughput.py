@@ -157,7 +157,8 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as workdir:
         for entry in args.entries:  # warm-up: file caches, first imports
             took = timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda)
-            print(f"warm-up {entry}: {took:.1f} s", file=sys.stderr, flush=True)  # a slow or stuck entry shows at once
+            # as each entry ends: a slow entry shows at once, a stuck one by its missing line
+            print(f"warm-up {entry}: {took:.1f} s", file=sys.stderr, flush=True)
         for repeat in range(args.repeats):
             for entry in args.entries:
                 short = timed_run(

@@ -7,8 +7,8 @@ plot_results.py wrote (one row per run: algo, env_id, seed, steps, final_return)
 
 prints a markdown table: each task both algorithms ran, the runs of each, their mean and standard deviation,
 the difference of the means, Welch's t, its degrees of freedom, the two-sided p-value (unequal variances), and
-in how many of the (a run, b run) pairs a's run is higher (with 3 runs each, 9/9 happens one time in twenty
-for two equal algorithms).
+in how many of the (a run, b run) pairs a's run is higher (a tie counts for neither; with 3 runs each and no
+ties, 9/9 happens one time in twenty for two equal algorithms).
 With an eval_series.csv (plot_results.py's: algo, env_id, seed, step, episodic_return) and --steps LO HI, a
 run's value is the mean of its evaluations from step LO to step HI (both included) instead of its final one.
 With three runs a side the test only sees large differences; a high p-value is no evidence of equality.
@@ -96,7 +96,9 @@ def main(argv=None):
     rows = welch_table(runs, args.a, args.b)
     if not rows:
         sys.exit(f"error: no task with at least two runs of both {args.a!r} and {args.b!r}")
-    print(f"| task | {args.a} (n, mean +- std) | {args.b} (n, mean +- std) | difference | Welch t | df | p | {args.a} above |")
+    print(
+        f"| task | {args.a} (n, mean +- std) | {args.b} (n, mean +- std) | difference | Welch t | df | p | {args.a} above (ties: neither) |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for env_id, na, ma, sa, nb, mb, sb, t, df, p, above in rows:
         print(
