@@ -332,7 +332,8 @@ progress() {  # prints when the counts (of runs, not processes) changed
 }
 for i in "${!runs[@]}"; do
   while (($(jobs -rp | wc -l) >= workers)); do wait -n; progress; done
-  (result=$(eval "run_one ${runs[$i]}"); echo "$result" >"$status_dir/$i.status") &
+  # a stopped sweep took $status_dir with it (its EXIT trap); its running runs still finish and write their DONE
+  (result=$(eval "run_one ${runs[$i]}"); { echo "$result" >"$status_dir/$i.status"; } 2>/dev/null) &
   started=$((started + sizes[i]))
   progress
 done

@@ -372,6 +372,7 @@ def test_runs_listed_as_finished_are_skipped(tmp_path):
 FAKE_SCRIPT = '''"""A stand-in for a training script: prints its command line, makes each seed's run folder with a checkpoint."""
 import os
 import sys
+import time
 
 
 class Args:
@@ -386,6 +387,7 @@ print("command:", " ".join(argv))
 for s in range(seed, seed + num_seeds):
     os.makedirs(os.path.join("runs", run_name.replace("{seed}", str(s))), exist_ok=True)
     open(os.path.join("runs", run_name.replace("{seed}", str(s)), "checkpoint.pt"), "w").close()
+time.sleep(float(os.environ.get("FAKE_SLEEP", "0")))
 sys.exit(int(os.environ.get("FAKE_EXIT", "0")))
 '''
 FAKE = ["--algos", "fake", "--env-ids", "Pendulum-v1", "--total-timesteps", "300"]
@@ -429,6 +431,27 @@ def test_seeds_per_process_groups_consecutive_seeds_and_starts_a_group_at_a_gap(
     job = bench(*five, "--dry-run", "--slurm", cwd=tmp_path).stdout  # one array task per group
     assert "#SBATCH --array=0-2" in job and "# run: td3 Pendulum-v1 3-4 default 10000 -- " in job
     assert not os.path.exists(tmp_path / "runs")
+
+
+def test_stopping_the_sweeps_first_process_lets_its_running_runs_finish_and_starts_no_more(fake):
+    # docs/sweeps.md: kill only the `bash benchmark.sh` you started; each run's own shell writes its DONE
+    env = {**os.environ, "PATH": os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"], "FAKE_SLEEP": "3"}
+    sweep = subprocess.Popen(
+        ["bash", str(fake.work.parent / "repo" / "benchmark.sh"), *FAKE, "--seeds", "1", "2", "3", "--workers", "2"],
+        cwd=fake.work,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.time() + 60
+    while not all((fake.work / "runs" / fake_name(seed)).exists() for seed in (1, 2)) and time.time() < deadline:
+        time.sleep(0.1)
+    sweep.terminate()
+    _, stderr = sweep.communicate(timeout=60)  # returns once the two running runs, which hold its pipes, have ended
+    assert [(fake.work / "runs" / fake_name(seed) / "DONE").exists() for seed in (1, 2)] == [True, True]
+    assert not (fake.work / "runs" / fake_name(3)).exists()  # never started
+    assert stderr == ""  # nothing about the progress files the stopped sweep took with it
 
 
 def test_seeds_per_process_one_changes_nothing(fake, tmp_path):
