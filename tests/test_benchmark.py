@@ -28,8 +28,13 @@ TINY = [
 ]
 
 
+def bench_env(**extra) -> dict:
+    """The environment a sweep runs in: this Python first on PATH, plus `extra`."""
+    return {**os.environ, "PATH": os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"], **extra}
+
+
 def bench(*flags, cwd, timeout=600, benchmark=BENCHMARK, env=None):
-    env = {**os.environ, "PATH": os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"], **(env or {})}
+    env = bench_env(**(env or {}))
     return subprocess.run(["bash", benchmark, *flags], cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
 
 
@@ -435,11 +440,10 @@ def test_seeds_per_process_groups_consecutive_seeds_and_starts_a_group_at_a_gap(
 
 def test_stopping_the_sweeps_first_process_lets_its_running_runs_finish_and_starts_no_more(fake):
     # docs/sweeps.md: kill only the `bash benchmark.sh` you started; each run's own shell writes its DONE
-    env = {**os.environ, "PATH": os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"], "FAKE_SLEEP": "3"}
     sweep = subprocess.Popen(
         ["bash", str(fake.work.parent / "repo" / "benchmark.sh"), *FAKE, "--seeds", "1", "2", "3", "--workers", "2"],
         cwd=fake.work,
-        env=env,
+        env=bench_env(FAKE_SLEEP="3"),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
