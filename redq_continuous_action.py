@@ -12,7 +12,7 @@ import random
 import sys
 import time
 from dataclasses import dataclass
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -99,17 +99,22 @@ class Args:
 
 # ALGO LOGIC: initialize agent here:
 # Every network below holds one copy per seed (--num-seeds), stacked along a leading dimension, and takes inputs
-# [num_seeds, batch, features]; nothing in a computation mixes seeds, so each seed is an independent run.
+# [num_seeds, batch, features]; nothing in a computation mixes seeds, so each seed is an independent run. Every random
+# draw is per seed too: `generators` holds one torch.Generator per seed (None: the global one), and seed k draws from
+# its own exactly what a single-seed run of seed k draws, whichever seeds share its process.
 class QEnsemble(nn.Module):
     """`num_q` critics per seed, concat(obs, action) -> 256 -> 256 -> 1, each layer's weights stacked into one
     [num_seeds * num_q, in, out] tensor (seed after seed) so that one batched matmul evaluates every member."""
 
-    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2, hidden: int = 256, num_seeds: int = 1):
+    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2, hidden: int = 256, generators: Sequence = (None,)):
         super().__init__()
         self.num_q = num_q
 
         def uniform(fan_in, *shape):  # the default init of nn.Linear, drawn independently per member
-            return nn.Parameter(torch.empty(num_seeds * num_q, *shape).uniform_(-(fan_in**-0.5), fan_in**-0.5))
+            p = torch.empty(len(generators), num_q, *shape)  # each seed's members from its own generator
+            for members, g in zip(p, generators):
+                members.uniform_(-(fan_in**-0.5), fan_in**-0.5, generator=g)
+            return nn.Parameter(p.flatten(0, 1))
 
         in_dim = obs_dim + action_dim
         self.w1, self.b1 = uniform(in_dim, in_dim, hidden), uniform(in_dim, 1, hidden)
@@ -141,13 +146,13 @@ class SeedLinear(nn.Module):
     """nn.Linear once per seed, the seeds' weights stacked: x [num_seeds, ..., in] -> [num_seeds, ..., out] in one
     batched matmul. Each seed's layer starts as an nn.Linear does."""
 
-    def __init__(self, in_features: int, out_features: int, num_seeds: int = 1):
+    def __init__(self, in_features: int, out_features: int, generators: Sequence = (None,)):
         super().__init__()
-        self.weight = nn.Parameter(torch.empty(num_seeds, out_features, in_features))
-        self.bias = nn.Parameter(torch.empty(num_seeds, out_features))
-        for weight, bias in zip(self.weight.data, self.bias.data):
-            nn.init.kaiming_uniform_(weight, a=math.sqrt(5))
-            nn.init.uniform_(bias, -1 / math.sqrt(in_features), 1 / math.sqrt(in_features))
+        self.weight = nn.Parameter(torch.empty(len(generators), out_features, in_features))
+        self.bias = nn.Parameter(torch.empty(len(generators), out_features))
+        for weight, bias, g in zip(self.weight.data, self.bias.data, generators):
+            nn.init.kaiming_uniform_(weight, a=math.sqrt(5), generator=g)
+            nn.init.uniform_(bias, -1 / math.sqrt(in_features), 1 / math.sqrt(in_features), generator=g)
 
     def forward(self, x):
         if len(self.weight) == 1:  # nn.Linear's own kernel: one seed computes exactly what a single-seed network does
@@ -159,12 +164,12 @@ class SeedLinear(nn.Module):
 class Actor(nn.Module):
     """A Gaussian policy squashed by tanh into the action bounds."""
 
-    def __init__(self, obs_dim: int, action_space: gym.spaces.Box, num_seeds: int = 1):
+    def __init__(self, obs_dim: int, action_space: gym.spaces.Box, generators: Sequence = (None,)):
         super().__init__()
-        self.fc1 = SeedLinear(obs_dim, 256, num_seeds)
-        self.fc2 = SeedLinear(256, 256, num_seeds)
-        self.fc_mean = SeedLinear(256, int(np.prod(action_space.shape)), num_seeds)
-        self.fc_logstd = SeedLinear(256, int(np.prod(action_space.shape)), num_seeds)
+        self.fc1 = SeedLinear(obs_dim, 256, generators)
+        self.fc2 = SeedLinear(256, 256, generators)
+        self.fc_mean = SeedLinear(256, int(np.prod(action_space.shape)), generators)
+        self.fc_logstd = SeedLinear(256, int(np.prod(action_space.shape)), generators)
         # action rescaling
         low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in (action_space.low, action_space.high))
         self.register_buffer("action_scale", (high - low) / 2.0)
@@ -180,16 +185,23 @@ class Actor(nn.Module):
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (log_std + 1)  # From SpinUp / Denis Yarats
         return mean, log_std
 
-    def get_action(self, x):
-        """A sampled action, its log-probability (summed over dimensions) and the deterministic action."""
+    def get_action(self, x, generators=None):
+        """A sampled action, its log-probability (summed over dimensions) and the deterministic action; x [num_seeds, ...],
+        each seed's noise drawn from its own generator."""
         mean, log_std = self(x)
-        normal = torch.distributions.Normal(mean, log_std.exp(), validate_args=False)  # validation syncs with the host
-        x_t = normal.rsample()  # for reparameterization trick (mean + std * N(0,1))
+        std = log_std.exp()
+        normal = torch.distributions.Normal(mean, std, validate_args=False)  # validation syncs with the host
+        x_t = mean + randn_like(mean, generators) * std  # for reparameterization trick (mean + std * N(0,1))
         y_t = torch.tanh(x_t)
         action = y_t * self.action_scale + self.action_bias
         # change of variables through the squashing, a = scale * tanh(x) + bias; 1e-6 keeps the log finite
         log_prob = (normal.log_prob(x_t) - torch.log(self.action_scale * (1 - y_t.pow(2)) + 1e-6)).sum(-1)
         return action, log_prob, torch.tanh(mean) * self.action_scale + self.action_bias
+
+    def deterministic_action(self, x):
+        """The squashed mean action (what get_action returns last), without drawing noise: what evaluations take."""
+        mean, _ = self(x)
+        return torch.tanh(mean) * self.action_scale + self.action_bias
 
 
 class Batch(NamedTuple):
@@ -202,12 +214,12 @@ class Batch(NamedTuple):
 
 class ReplayBuffer:
     """Each seed's transitions in one preallocated [num_seeds, capacity, fields] tensor: one row per seed per add, one
-    gather per batch (each seed's batch drawn from its own transitions)."""
+    gather per batch (each seed's batch drawn from its own transitions, with its own generator)."""
 
-    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device, num_seeds: int = 1):
-        self.capacity, self.pos, self.size = capacity, 0, 0
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device, generators: Sequence = (None,)):
+        self.capacity, self.pos, self.size, self.generators = capacity, 0, 0, generators
         self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
-        self.storage = torch.zeros((num_seeds, capacity, sum(self.widths)), dtype=torch.float32, device=device)
+        self.storage = torch.zeros((len(generators), capacity, sum(self.widths)), dtype=torch.float32, device=device)
 
     def add(self, obs, action, next_obs, reward, termination):
         """One transition per seed: obs [num_seeds, obs_dim], ..., reward and termination [num_seeds]."""
@@ -220,9 +232,9 @@ class ReplayBuffer:
     def sample(self, *shape: int) -> Batch:
         """Transitions drawn uniformly with replacement, for each seed a batch of this shape: `sample(256)` gives
         fields [num_seeds, 256, width], `sample(20, 256)` twenty batches each ([num_seeds, 20, 256, width])."""
-        num_seeds = len(self.storage)
-        indices = torch.randint(self.size, (num_seeds, *shape), device=self.storage.device)
-        seed = torch.arange(num_seeds, device=self.storage.device).view(-1, *[1] * len(shape))
+        device = self.storage.device
+        indices = torch.stack([torch.randint(self.size, shape, generator=g, device=device) for g in self.generators])
+        seed = torch.arange(len(self.generators), device=device).view(-1, *[1] * len(shape))
         obs, actions, next_obs, rewards, terminations = self.storage[seed, indices].split(self.widths, dim=-1)
         return Batch(obs, actions, next_obs, rewards.squeeze(-1), terminations.squeeze(-1))
 
@@ -234,24 +246,34 @@ class ReplayBuffer:
         self.size, self.pos = state["rows"].shape[1], state["pos"]
 
 
+def randn_like(x: torch.Tensor, generators: Optional[Sequence] = None) -> torch.Tensor:
+    """torch.randn_like(x); given generators (one per seed, x [num_seeds, ...]), each seed's share drawn from its own."""
+    if generators is None:
+        return torch.randn_like(x)
+    return torch.stack([torch.randn(x.shape[1:], generator=g, dtype=x.dtype, device=x.device) for g in generators])
+
+
 @torch.no_grad()
-def noisy_action(obs, actor: Actor) -> torch.Tensor:
+def noisy_action(obs, actor: Actor, generators=None) -> torch.Tensor:
     """Each seed's action (obs [num_seeds, obs_dim]) sampled from its policy: SAC explores with the policy's own randomness."""
-    return actor.get_action(torch.as_tensor(obs, device=actor.action_scale.device))[0]
+    return actor.get_action(torch.as_tensor(obs, device=actor.action_scale.device), generators)[0]
 
 
-def td_target(batch: Batch, actor: Actor, qf_target: QEnsemble, alpha: torch.Tensor, args: Args):
+def td_target(batch: Batch, actor: Actor, qf_target: QEnsemble, alpha: torch.Tensor, args: Args, generators=None):
     """y = r + gamma * (1 - terminated) * (min_{i in M} Q'_i(s', a') - alpha * log pi(a'|s')), a' ~ pi(.|s'),
     with M a random subset of num_min of the num_q target critics, drawn anew for every update."""
     with torch.no_grad():
-        next_actions, next_log_pi, _ = actor.get_action(batch.next_observations)
-        subset = torch.randperm(args.num_q, device=next_actions.device)[: args.num_min]
+        next_actions, next_log_pi, _ = actor.get_action(batch.next_observations, generators)
+        generator = generators[0] if generators else None  # REDQ trains one seed per process
+        subset = torch.randperm(args.num_q, generator=generator, device=next_actions.device)[: args.num_min]
         min_qf_next_target = qf_target(batch.next_observations, next_actions, subset).min(-2).values - alpha * next_log_pi
         return batch.rewards + (1 - batch.terminations) * args.gamma * min_qf_next_target
 
 
-def update_critic(batch: Batch, qf: QEnsemble, q_optimizer, actor: Actor, qf_target: QEnsemble, alpha, args: Args):
-    next_q_value = td_target(batch, actor, qf_target, alpha, args)
+def update_critic(
+    batch: Batch, qf: QEnsemble, q_optimizer, actor: Actor, qf_target: QEnsemble, alpha, args: Args, generators=None
+):
+    next_q_value = td_target(batch, actor, qf_target, alpha, args, generators)
     qf_a_values = qf(batch.observations, batch.actions)
     qf_loss = ((qf_a_values - next_q_value.unsqueeze(-2)) ** 2).mean(-1).sum(-1)  # per seed, the sum of each critic's MSE
     check_finite(qf_loss.sum(), "qf_loss")
@@ -261,9 +283,9 @@ def update_critic(batch: Batch, qf: QEnsemble, q_optimizer, actor: Actor, qf_tar
     return qf_loss.detach(), qf_a_values.detach()
 
 
-def update_actor(batch: Batch, actor: Actor, actor_optimizer, qf: QEnsemble, alpha: torch.Tensor):
+def update_actor(batch: Batch, actor: Actor, actor_optimizer, qf: QEnsemble, alpha: torch.Tensor, generators=None):
     # maximise the mean over all critics of Q_i(s, a) + alpha * entropy; the critics' weights get no gradient
-    pi, log_pi, _ = actor.get_action(batch.observations)
+    pi, log_pi, _ = actor.get_action(batch.observations, generators)
     actor_loss = (alpha * log_pi - qf(batch.observations, pi, detach_params=True).mean(-2)).mean(-1)  # per seed
     check_finite(actor_loss.sum(), "actor_loss")
     actor_optimizer.zero_grad()
@@ -272,10 +294,10 @@ def update_actor(batch: Batch, actor: Actor, actor_optimizer, qf: QEnsemble, alp
     return actor_loss.detach()
 
 
-def update_alpha(batch: Batch, actor: Actor, log_alpha: torch.Tensor, a_optimizer, target_entropy: float):
+def update_alpha(batch: Batch, actor: Actor, log_alpha: torch.Tensor, a_optimizer, target_entropy: float, generators=None):
     """Moves alpha up when the policy's entropy is below the target, down when above."""
     with torch.no_grad():
-        _, log_pi, _ = actor.get_action(batch.observations)
+        _, log_pi, _ = actor.get_action(batch.observations, generators)
     alpha_loss = (-log_alpha.exp() * (log_pi + target_entropy)).mean(-1)  # per seed
     check_finite(alpha_loss.sum(), "alpha_loss")
     a_optimizer.zero_grad()
@@ -300,20 +322,17 @@ def evaluate(actor: Actor, envs: list, num_episodes: int, seeds: list) -> np.nda
     returns = np.zeros((len(envs), num_episodes))
     obs = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)]
     episode = [0] * len(envs)
-    # get_action also samples, unused here; with several seeds the number of draws would depend on every seed's
-    # episode lengths and so reach the others' training draws: they come from a copy of the generators instead
-    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else [], enabled=len(envs) > 1):
-        while min(episode) < num_episodes:
-            actions = actor.get_action(torch.as_tensor(np.stack(obs), device=device))[2].cpu().numpy()
-            for k, env in enumerate(envs):
-                if episode[k] == num_episodes:  # this seed is done; the others go on
-                    continue
-                obs[k], reward, terminated, truncated, _ = env.step(actions[k])
-                returns[k, episode[k]] += reward
-                if terminated or truncated:
-                    episode[k] += 1
-                    if episode[k] < num_episodes:
-                        obs[k], _ = env.reset()
+    while min(episode) < num_episodes:
+        actions = actor.deterministic_action(torch.as_tensor(np.stack(obs), device=device)).cpu().numpy()
+        for k, env in enumerate(envs):
+            if episode[k] == num_episodes:  # this seed is done; the others go on
+                continue
+            obs[k], reward, terminated, truncated, _ = env.step(actions[k])
+            returns[k, episode[k]] += reward
+            if terminated or truncated:
+                episode[k] += 1
+                if episode[k] < num_episodes:
+                    obs[k], _ = env.reset()
     return returns
 
 
@@ -332,6 +351,10 @@ def main(args: Args):
     torch.backends.cudnn.deterministic = args.torch_deterministic
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    # Each seed's own generators, seeded as torch.manual_seed seeds a single-seed run's: its initial weights (drawn on
+    # the CPU) and its batches and noise (drawn on the device) are those of a single-seed run of that seed.
+    init_generators = [torch.Generator().manual_seed(seed) for seed in seeds]
+    generators = init_generators if device.type == "cpu" else [torch.Generator(device).manual_seed(seed) for seed in seeds]
     if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
         os.environ.setdefault("MUJOCO_GL", "disable")
 
@@ -343,9 +366,9 @@ def main(args: Args):
     obs_dim = int(np.prod(envs[0].observation_space.shape))
     action_dim = int(np.prod(envs[0].action_space.shape))
 
-    actor = Actor(obs_dim, envs[0].action_space, args.num_seeds).to(device)
-    qf = QEnsemble(obs_dim, action_dim, num_q=args.num_q, num_seeds=args.num_seeds).to(device)
-    qf_target = QEnsemble(obs_dim, action_dim, num_q=args.num_q, num_seeds=args.num_seeds).to(device)
+    actor = Actor(obs_dim, envs[0].action_space, init_generators).to(device)
+    qf = QEnsemble(obs_dim, action_dim, num_q=args.num_q, generators=init_generators).to(device)
+    qf_target = QEnsemble(obs_dim, action_dim, num_q=args.num_q, generators=init_generators).to(device)
     qf_target.load_state_dict(qf.state_dict())
     # fused Adam; capturable, so that --cudagraphs can record the optimizer step in its graph
     adam = functools.partial(optim.Adam, fused=True, capturable=args.cudagraphs)
@@ -360,7 +383,7 @@ def main(args: Args):
     a_optimizer = adam([log_alpha], lr=args.q_lr)
     alpha = log_alpha.detach().exp() if args.autotune else torch.full((args.num_seeds, 1), args.alpha, device=device)
 
-    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device, args.num_seeds)
+    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device, generators)
 
     def update(batches: Batch) -> dict:
         """One environment step's training: G critic updates, each on its own batch of `batches` and followed by
@@ -368,12 +391,12 @@ def main(args: Args):
         with bf16_autocast(device, args.bf16):
             for i in range(args.utd_ratio):  # G critic updates per environment step
                 batch = Batch(*(field[:, i] for field in batches))
-                qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, actor, qf_target, alpha, args)
+                qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, actor, qf_target, alpha, args, generators)
                 soft_update([qf_target], [qf], args.tau)
             # one actor (and alpha) update per environment step, on the last critic batch, as REDQ's code
-            actor_loss = update_actor(batch, actor, actor_optimizer, qf, alpha)
+            actor_loss = update_actor(batch, actor, actor_optimizer, qf, alpha, generators)
             if args.autotune:
-                alpha_loss = update_alpha(batch, actor, log_alpha, a_optimizer, target_entropy)
+                alpha_loss = update_alpha(batch, actor, log_alpha, a_optimizer, target_entropy, generators)
                 alpha.copy_(log_alpha.detach().exp())  # in place: a graph reads alpha where it was
         logs = {"losses/qf_values": qf_a_values.mean((-2, -1)), "losses/qf_loss": qf_loss / qf.num_q}  # per critic, as CleanRL
         logs["losses/actor_loss"], logs["losses/alpha"] = actor_loss, alpha
@@ -381,7 +404,7 @@ def main(args: Args):
             logs["losses/alpha_loss"] = alpha_loss
         return logs
 
-    update = CudaGraph(update) if args.cudagraphs else update  # all G + 1 updates of a step in one graph
+    update = CudaGraph(update, generators) if args.cudagraphs else update  # all G + 1 updates of a step in one graph
 
     nets = {"actor": actor, "qf": qf, "qf_target": qf_target}
     optimizers = {"q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer, "a_optimizer": a_optimizer}
@@ -392,13 +415,16 @@ def main(args: Args):
         checkpoint = join_seeds(checkpoints, nets)
         obs = restore(checkpoint, envs, nets, optimizers, **parts)
         start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
+        for generator, generator_state in zip(generators, checkpoint["generators"]):
+            generator.set_state(generator_state.clone())  # torch reads a view of a stacked tensor from its start
         with torch.no_grad():
             log_alpha.copy_(checkpoint["log_alpha"])
         if args.autotune:
             alpha.copy_(log_alpha.detach().exp())
 
     def state(step: int) -> list:  # one checkpoint per seed
-        extra = {"eval_returns": eval_returns, "log_alpha": log_alpha.detach().cpu()}
+        extra = {"eval_returns": eval_returns, "generators": torch.stack([g.get_state() for g in generators])}  # plain values
+        extra["log_alpha"] = log_alpha.detach().cpu()
         return split_seeds(snapshot(args, envs, step, nets, optimizers, **parts, **extra), nets, run_dirs)
 
     writers, pbar = start_logging(args, run_dirs, start_step, device)
@@ -421,7 +447,7 @@ def main(args: Args):
         if global_step < args.learning_starts:
             actions = np.stack([env.action_space.sample() for env in envs])
         else:
-            actions = noisy_action(np.stack(obs), actor).cpu().numpy()
+            actions = noisy_action(np.stack(obs), actor, generators).cpu().numpy()
 
         # execute the game and log data; a time-limit truncation is stored as not terminated, so its target bootstraps
         next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(envs, actions)))
@@ -463,7 +489,8 @@ def main(args: Args):
         env.close()
     for writer in writers:
         writer.close()
-    return {**nets, **optimizers, "update": update, "rb": rb, "alpha": alpha, **results(run_dirs, eval_returns)}
+    returned = {**nets, **optimizers, "update": update, "rb": rb, "alpha": alpha, "generators": generators}
+    return {**returned, **results(run_dirs, eval_returns)}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -703,10 +730,11 @@ class CudaGraph:
     stream (they allocate the gradients and optimizer states the graph will reuse), the next one records the
     graph, and from then on a call copies its tensors (a tensor, or a NamedTuple of them such as a Batch) into
     the graph's own inputs and replays it: one launch instead of hundreds of small kernels, with no host
-    synchronisation. What it returns is overwritten by its next replay."""
+    synchronisation. What it returns is overwritten by its next replay. The generators `fn` draws from are
+    registered with each graph, so that a replay draws anew from each and advances it as `fn` would."""
 
-    def __init__(self, fn, warmup: int = 3):
-        self.fn, self.warmup = fn, warmup
+    def __init__(self, fn, generators: Sequence = (), warmup: int = 3):
+        self.fn, self.generators, self.warmup = fn, generators, warmup
         self.calls, self.graphs, self.inputs, self.outputs = {}, {}, {}, {}
 
     @staticmethod
@@ -739,6 +767,8 @@ class CudaGraph:
                 return outputs
             self.inputs[key] = [self.clone(x) for x in inputs]
             self.graphs[key] = torch.cuda.CUDAGraph()
+            for generator in self.generators:
+                self.graphs[key].register_generator_state(generator)
             with torch.cuda.graph(self.graphs[key]):  # records the kernels without running them
                 self.outputs[key] = self.fn(*self.inputs[key])
         self.graphs[key].replay()
@@ -870,7 +900,7 @@ def seed_share(net_state: dict, params: set, k: int, num_seeds: int) -> dict:
 
 
 # plain values of a checkpoint that hold one entry (or, for tensors, one cut of the leading dimension) per seed
-PER_SEED = ("eval_returns", "log_alpha")
+PER_SEED = ("eval_returns", "generators", "log_alpha")
 
 
 def split_seeds(state: dict, nets: dict, run_dirs: list) -> list:
@@ -947,6 +977,8 @@ def write_checkpoints(run_dirs: list, states: list):
 def load_checkpoints(run_dir: str) -> list:
     """The checkpoints of the seeds that trained in one process with the run in run_dir, at one step, in seed order."""
     first = load_checkpoint(run_dir)
+    if "generators" not in first:
+        fail(f"--resume {run_dir} was written before each seed drew from its own generators; resume it with that version")
     run_dirs = [os.path.join(os.path.dirname(os.path.normpath(run_dir)), name) for name in first["run_names"]]
     checkpoints = [load_checkpoint(d) if os.path.isfile(os.path.join(d, CHECKPOINT)) else None for d in run_dirs]
     step = max(checkpoint["global_step"] for checkpoint in checkpoints if checkpoint)

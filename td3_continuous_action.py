@@ -11,7 +11,7 @@ import random
 import sys
 import time
 from dataclasses import dataclass
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -92,17 +92,22 @@ class Args:
 
 # ALGO LOGIC: initialize agent here:
 # Every network below holds one copy per seed (--num-seeds), stacked along a leading dimension, and takes inputs
-# [num_seeds, batch, features]; nothing in a computation mixes seeds, so each seed is an independent run.
+# [num_seeds, batch, features]; nothing in a computation mixes seeds, so each seed is an independent run. Every random
+# draw is per seed too: `generators` holds one torch.Generator per seed (None: the global one), and seed k draws from
+# its own exactly what a single-seed run of seed k draws, whichever seeds share its process.
 class QEnsemble(nn.Module):
     """`num_q` critics per seed, concat(obs, action) -> 256 -> 256 -> 1, each layer's weights stacked into one
     [num_seeds * num_q, in, out] tensor (seed after seed) so that one batched matmul evaluates every member."""
 
-    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2, hidden: int = 256, num_seeds: int = 1):
+    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2, hidden: int = 256, generators: Sequence = (None,)):
         super().__init__()
         self.num_q = num_q
 
         def uniform(fan_in, *shape):  # the default init of nn.Linear, drawn independently per member
-            return nn.Parameter(torch.empty(num_seeds * num_q, *shape).uniform_(-(fan_in**-0.5), fan_in**-0.5))
+            p = torch.empty(len(generators), num_q, *shape)  # each seed's members from its own generator
+            for members, g in zip(p, generators):
+                members.uniform_(-(fan_in**-0.5), fan_in**-0.5, generator=g)
+            return nn.Parameter(p.flatten(0, 1))
 
         in_dim = obs_dim + action_dim
         self.w1, self.b1 = uniform(in_dim, in_dim, hidden), uniform(in_dim, 1, hidden)
@@ -128,13 +133,13 @@ class SeedLinear(nn.Module):
     """nn.Linear once per seed, the seeds' weights stacked: x [num_seeds, ..., in] -> [num_seeds, ..., out] in one
     batched matmul. Each seed's layer starts as an nn.Linear does."""
 
-    def __init__(self, in_features: int, out_features: int, num_seeds: int = 1):
+    def __init__(self, in_features: int, out_features: int, generators: Sequence = (None,)):
         super().__init__()
-        self.weight = nn.Parameter(torch.empty(num_seeds, out_features, in_features))
-        self.bias = nn.Parameter(torch.empty(num_seeds, out_features))
-        for weight, bias in zip(self.weight.data, self.bias.data):
-            nn.init.kaiming_uniform_(weight, a=math.sqrt(5))
-            nn.init.uniform_(bias, -1 / math.sqrt(in_features), 1 / math.sqrt(in_features))
+        self.weight = nn.Parameter(torch.empty(len(generators), out_features, in_features))
+        self.bias = nn.Parameter(torch.empty(len(generators), out_features))
+        for weight, bias, g in zip(self.weight.data, self.bias.data, generators):
+            nn.init.kaiming_uniform_(weight, a=math.sqrt(5), generator=g)
+            nn.init.uniform_(bias, -1 / math.sqrt(in_features), 1 / math.sqrt(in_features), generator=g)
 
     def forward(self, x):
         if len(self.weight) == 1:  # nn.Linear's own kernel: one seed computes exactly what a single-seed network does
@@ -144,11 +149,11 @@ class SeedLinear(nn.Module):
 
 
 class Actor(nn.Module):
-    def __init__(self, obs_dim: int, action_space: gym.spaces.Box, num_seeds: int = 1):
+    def __init__(self, obs_dim: int, action_space: gym.spaces.Box, generators: Sequence = (None,)):
         super().__init__()
-        self.fc1 = SeedLinear(obs_dim, 256, num_seeds)
-        self.fc2 = SeedLinear(256, 256, num_seeds)
-        self.fc_mu = SeedLinear(256, int(np.prod(action_space.shape)), num_seeds)
+        self.fc1 = SeedLinear(obs_dim, 256, generators)
+        self.fc2 = SeedLinear(256, 256, generators)
+        self.fc_mu = SeedLinear(256, int(np.prod(action_space.shape)), generators)
         # action rescaling
         low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in (action_space.low, action_space.high))
         self.register_buffer("action_scale", (high - low) / 2.0)
@@ -173,12 +178,12 @@ class Batch(NamedTuple):
 
 class ReplayBuffer:
     """Each seed's transitions in one preallocated [num_seeds, capacity, fields] tensor: one row per seed per add, one
-    gather per batch (each seed's batch drawn from its own transitions)."""
+    gather per batch (each seed's batch drawn from its own transitions, with its own generator)."""
 
-    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device, num_seeds: int = 1):
-        self.capacity, self.pos, self.size = capacity, 0, 0
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device, generators: Sequence = (None,)):
+        self.capacity, self.pos, self.size, self.generators = capacity, 0, 0, generators
         self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
-        self.storage = torch.zeros((num_seeds, capacity, sum(self.widths)), dtype=torch.float32, device=device)
+        self.storage = torch.zeros((len(generators), capacity, sum(self.widths)), dtype=torch.float32, device=device)
 
     def add(self, obs, action, next_obs, reward, termination):
         """One transition per seed: obs [num_seeds, obs_dim], ..., reward and termination [num_seeds]."""
@@ -191,9 +196,9 @@ class ReplayBuffer:
     def sample(self, *shape: int) -> Batch:
         """Transitions drawn uniformly with replacement, for each seed a batch of this shape: `sample(256)` gives
         fields [num_seeds, 256, width], `sample(20, 256)` twenty batches each ([num_seeds, 20, 256, width])."""
-        num_seeds = len(self.storage)
-        indices = torch.randint(self.size, (num_seeds, *shape), device=self.storage.device)
-        seed = torch.arange(num_seeds, device=self.storage.device).view(-1, *[1] * len(shape))
+        device = self.storage.device
+        indices = torch.stack([torch.randint(self.size, shape, generator=g, device=device) for g in self.generators])
+        seed = torch.arange(len(self.generators), device=device).view(-1, *[1] * len(shape))
         obs, actions, next_obs, rewards, terminations = self.storage[seed, indices].split(self.widths, dim=-1)
         return Batch(obs, actions, next_obs, rewards.squeeze(-1), terminations.squeeze(-1))
 
@@ -205,27 +210,37 @@ class ReplayBuffer:
         self.size, self.pos = state["rows"].shape[1], state["pos"]
 
 
+def randn_like(x: torch.Tensor, generators: Optional[Sequence] = None) -> torch.Tensor:
+    """torch.randn_like(x); given generators (one per seed, x [num_seeds, ...]), each seed's share drawn from its own."""
+    if generators is None:
+        return torch.randn_like(x)
+    return torch.stack([torch.randn(x.shape[1:], generator=g, dtype=x.dtype, device=x.device) for g in generators])
+
+
 @torch.no_grad()
-def noisy_action(obs, actor: Actor, exploration_noise: float) -> torch.Tensor:
+def noisy_action(obs, actor: Actor, exploration_noise: float, generators=None) -> torch.Tensor:
     """Each seed's action, obs [num_seeds, obs_dim] -> [num_seeds, action_dim], plus Gaussian noise of std
     exploration_noise * action_scale, clipped to the bounds."""
     action = actor(torch.as_tensor(obs, device=actor.action_scale.device))
-    noise = torch.normal(0, (actor.action_scale * exploration_noise).expand_as(action))
+    noise = randn_like(action, generators) * (actor.action_scale * exploration_noise)
     return (action + noise).clamp(actor.action_low, actor.action_high)
 
 
-def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Args):
+def td_target(batch: Batch, target_actor: Actor, qf_target: QEnsemble, args: Args, generators=None):
     """y = r + gamma * (1 - terminated) * min_i Q'_i(s', clip(pi'(s') + clipped noise)) (TD3 Eq. 15)."""
     with torch.no_grad():
-        clipped_noise = (torch.randn_like(batch.actions) * args.policy_noise).clamp(-args.noise_clip, args.noise_clip)
+        noise = randn_like(batch.actions, generators)
+        clipped_noise = (noise * args.policy_noise).clamp(-args.noise_clip, args.noise_clip)
         next_actions = target_actor(batch.next_observations) + clipped_noise * target_actor.action_scale
         next_actions = next_actions.clamp(target_actor.action_low, target_actor.action_high)
         min_qf_next_target = qf_target(batch.next_observations, next_actions).min(-2).values
         return batch.rewards + (1 - batch.terminations) * args.gamma * min_qf_next_target
 
 
-def update_critic(batch: Batch, qf: QEnsemble, q_optimizer, target_actor: Actor, qf_target: QEnsemble, args: Args):
-    next_q_value = td_target(batch, target_actor, qf_target, args)
+def update_critic(
+    batch: Batch, qf: QEnsemble, q_optimizer, target_actor: Actor, qf_target: QEnsemble, args: Args, generators=None
+):
+    next_q_value = td_target(batch, target_actor, qf_target, args, generators)
     qf_a_values = qf(batch.observations, batch.actions)
     qf_loss = ((qf_a_values - next_q_value.unsqueeze(-2)) ** 2).mean(-1).sum(-1)  # per seed, the sum of each critic's MSE
     check_finite(qf_loss.sum(), "qf_loss")
@@ -291,6 +306,10 @@ def main(args: Args):
     torch.backends.cudnn.deterministic = args.torch_deterministic
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    # Each seed's own generators, seeded as torch.manual_seed seeds a single-seed run's: its initial weights (drawn on
+    # the CPU) and its batches and noise (drawn on the device) are those of a single-seed run of that seed.
+    init_generators = [torch.Generator().manual_seed(seed) for seed in seeds]
+    generators = init_generators if device.type == "cpu" else [torch.Generator(device).manual_seed(seed) for seed in seeds]
     if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
         os.environ.setdefault("MUJOCO_GL", "disable")
 
@@ -302,10 +321,10 @@ def main(args: Args):
     obs_dim = int(np.prod(envs[0].observation_space.shape))
     action_dim = int(np.prod(envs[0].action_space.shape))
 
-    actor = Actor(obs_dim, envs[0].action_space, args.num_seeds).to(device)
-    qf = QEnsemble(obs_dim, action_dim, num_q=2, num_seeds=args.num_seeds).to(device)
-    target_actor = Actor(obs_dim, envs[0].action_space, args.num_seeds).to(device)
-    qf_target = QEnsemble(obs_dim, action_dim, num_q=2, num_seeds=args.num_seeds).to(device)
+    actor = Actor(obs_dim, envs[0].action_space, init_generators).to(device)
+    qf = QEnsemble(obs_dim, action_dim, num_q=2, generators=init_generators).to(device)
+    target_actor = Actor(obs_dim, envs[0].action_space, init_generators).to(device)
+    qf_target = QEnsemble(obs_dim, action_dim, num_q=2, generators=init_generators).to(device)
     target_actor.load_state_dict(actor.state_dict())
     qf_target.load_state_dict(qf.state_dict())
     # fused Adam; capturable, so that --cudagraphs can record the optimizer step in its graph
@@ -313,13 +332,13 @@ def main(args: Args):
     q_optimizer = adam(qf.parameters(), lr=args.learning_rate)
     actor_optimizer = adam(actor.parameters(), lr=args.learning_rate)
 
-    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device, args.num_seeds)
+    rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, device, generators)
 
     def update(batch: Batch, policy_step: bool) -> dict:
         """One training iteration: the critics; every --policy-frequency steps the actor and the target
         networks too. Returns what gets logged, by TensorBoard tag, one value per seed."""
         with bf16_autocast(device, args.bf16):
-            qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args)
+            qf_loss, qf_a_values = update_critic(batch, qf, q_optimizer, target_actor, qf_target, args, generators)
             if policy_step:
                 actor_loss = update_actor(batch, actor, actor_optimizer, qf)
                 soft_update([target_actor, qf_target], [actor, qf], args.tau)
@@ -328,7 +347,7 @@ def main(args: Args):
             logs["losses/actor_loss"] = actor_loss
         return logs
 
-    update = CudaGraph(update) if args.cudagraphs else update  # one graph per value of policy_step
+    update = CudaGraph(update, generators) if args.cudagraphs else update  # one graph per value of policy_step
 
     nets = {"actor": actor, "qf": qf, "target_actor": target_actor, "qf_target": qf_target}
     optimizers = {"q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer}
@@ -339,9 +358,11 @@ def main(args: Args):
         checkpoint = join_seeds(checkpoints, nets)
         obs = restore(checkpoint, envs, nets, optimizers, **parts)
         start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
+        for generator, generator_state in zip(generators, checkpoint["generators"]):
+            generator.set_state(generator_state.clone())  # torch reads a view of a stacked tensor from its start
 
     def state(step: int) -> list:  # one checkpoint per seed
-        extra = {"eval_returns": eval_returns}  # plain values a checkpoint holds
+        extra = {"eval_returns": eval_returns, "generators": torch.stack([g.get_state() for g in generators])}  # plain values
         return split_seeds(snapshot(args, envs, step, nets, optimizers, **parts, **extra), nets, run_dirs)
 
     writers, pbar = start_logging(args, run_dirs, start_step, device)
@@ -364,7 +385,7 @@ def main(args: Args):
         if global_step < args.learning_starts:
             actions = np.stack([env.action_space.sample() for env in envs])
         else:
-            actions = noisy_action(np.stack(obs), actor, args.exploration_noise).cpu().numpy()
+            actions = noisy_action(np.stack(obs), actor, args.exploration_noise, generators).cpu().numpy()
 
         # execute the game and log data; a time-limit truncation is stored as not terminated, so its target bootstraps
         next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(envs, actions)))
@@ -407,7 +428,7 @@ def main(args: Args):
         env.close()
     for writer in writers:
         writer.close()
-    return {**nets, **optimizers, "update": update, "rb": rb, **results(run_dirs, eval_returns)}
+    return {**nets, **optimizers, "update": update, "rb": rb, "generators": generators, **results(run_dirs, eval_returns)}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -645,10 +666,11 @@ class CudaGraph:
     stream (they allocate the gradients and optimizer states the graph will reuse), the next one records the
     graph, and from then on a call copies its tensors (a tensor, or a NamedTuple of them such as a Batch) into
     the graph's own inputs and replays it: one launch instead of hundreds of small kernels, with no host
-    synchronisation. What it returns is overwritten by its next replay."""
+    synchronisation. What it returns is overwritten by its next replay. The generators `fn` draws from are
+    registered with each graph, so that a replay draws anew from each and advances it as `fn` would."""
 
-    def __init__(self, fn, warmup: int = 3):
-        self.fn, self.warmup = fn, warmup
+    def __init__(self, fn, generators: Sequence = (), warmup: int = 3):
+        self.fn, self.generators, self.warmup = fn, generators, warmup
         self.calls, self.graphs, self.inputs, self.outputs = {}, {}, {}, {}
 
     @staticmethod
@@ -681,6 +703,8 @@ class CudaGraph:
                 return outputs
             self.inputs[key] = [self.clone(x) for x in inputs]
             self.graphs[key] = torch.cuda.CUDAGraph()
+            for generator in self.generators:
+                self.graphs[key].register_generator_state(generator)
             with torch.cuda.graph(self.graphs[key]):  # records the kernels without running them
                 self.outputs[key] = self.fn(*self.inputs[key])
         self.graphs[key].replay()
@@ -812,7 +836,7 @@ def seed_share(net_state: dict, params: set, k: int, num_seeds: int) -> dict:
 
 
 # plain values of a checkpoint that hold one entry (or, for tensors, one cut of the leading dimension) per seed
-PER_SEED = ("eval_returns", "log_alpha")
+PER_SEED = ("eval_returns", "generators", "log_alpha")
 
 
 def split_seeds(state: dict, nets: dict, run_dirs: list) -> list:
@@ -889,6 +913,8 @@ def write_checkpoints(run_dirs: list, states: list):
 def load_checkpoints(run_dir: str) -> list:
     """The checkpoints of the seeds that trained in one process with the run in run_dir, at one step, in seed order."""
     first = load_checkpoint(run_dir)
+    if "generators" not in first:
+        fail(f"--resume {run_dir} was written before each seed drew from its own generators; resume it with that version")
     run_dirs = [os.path.join(os.path.dirname(os.path.normpath(run_dir)), name) for name in first["run_names"]]
     checkpoints = [load_checkpoint(d) if os.path.isfile(os.path.join(d, CHECKPOINT)) else None for d in run_dirs]
     step = max(checkpoint["global_step"] for checkpoint in checkpoints if checkpoint)

@@ -174,7 +174,7 @@ def test_the_optimistic_candidate_choice_matches_the_release(both):
     obs = torch.randn(OBS_DIM)
     for seed in range(20):
         torch.manual_seed(seed)
-        chosen = oparl.optimistic_action(obs, ours["optimistic"], ours["qf"], num_candidates=10, exploration_noise=0.5)
+        chosen = oparl.optimistic_action(obs, ours["optimistic"], ours["qf"], 10, 0.5, None)
         torch.manual_seed(seed)  # the same ten candidates, as optimistic_action draws them
         candidates = (ours["optimistic"](obs).expand(10, -1) + torch.normal(0, torch.full((10, ACTION_DIM), 0.5))).clamp(-1, 1)
         # the release's rule (main.py): the population std of each candidate's N Q-values, the first strictly largest wins

@@ -162,7 +162,7 @@ def test_candidate_with_the_largest_ensemble_std_is_taken():
     obs = torch.randn(1, OBS_DIM)  # one seed
     for _ in range(20):
         rng_state = torch.get_rng_state()
-        chosen = oparl.optimistic_action(obs, actor, SpreadByFirstAction(), num_candidates=8, exploration_noise=0.5)
+        chosen = oparl.optimistic_action(obs, actor, SpreadByFirstAction(), 8, 0.5, None)
         torch.set_rng_state(rng_state)  # replay the same 8 candidates
         with torch.no_grad():
             candidates = (actor(obs).expand(8, -1) + torch.normal(0, actor.action_scale.expand(8, -1) * 0.5)).clamp(-2, 2)
@@ -174,7 +174,7 @@ def test_one_candidate_is_the_noisy_optimistic_action():
     torch.manual_seed(0)
     actor = oparl.Actor(OBS_DIM, SPACE)
     obs = torch.randn(1, OBS_DIM)  # one seed
-    actions = torch.stack([oparl.optimistic_action(obs, actor, None, 1, 0.1)[0] for _ in range(2000)])
+    actions = torch.stack([oparl.optimistic_action(obs, actor, None, 1, 0.1, None)[0] for _ in range(2000)])
     with torch.no_grad():
         torch.testing.assert_close(actions.mean(0), actor(obs)[0], atol=0.02, rtol=0)
     torch.testing.assert_close(actions.std(0), torch.full((ACTION_DIM,), 0.2), atol=0.02, rtol=0)  # 0.1 * action scale 2

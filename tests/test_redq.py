@@ -95,6 +95,6 @@ def test_default_target_entropy_is_the_releases_per_task_value(env_id, flags, ex
     monkeypatch.chdir(tmp_path)
     seen = []
     real_update = redq.update_alpha
-    monkeypatch.setattr(redq, "update_alpha", lambda *a: seen.append(a[-1]) or real_update(*a))
+    monkeypatch.setattr(redq, "update_alpha", lambda *a: seen.append(a[4]) or real_update(*a))  # its target_entropy
     redq.main(small_args(redq, env_id=env_id, total_timesteps=70, learning_starts=64, eval_frequency=70, **flags))
     assert seen and set(seen) == {expected}

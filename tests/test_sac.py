@@ -62,7 +62,7 @@ class FixedPolicy:
     def __init__(self, log_prob):
         self.log_prob = log_prob
 
-    def get_action(self, obs):
+    def get_action(self, obs, generators=None):
         return torch.zeros(len(obs), 2), self.log_prob, None
 
 

@@ -1,6 +1,5 @@
 """The measuring tools run and report what they say, on tiny settings."""
 
-import importlib.util
 import os
 import shutil
 import subprocess
@@ -8,7 +7,7 @@ import sys
 
 import pytest
 
-from conftest import REPO, load
+from conftest import REPO
 
 
 def tool(name, *flags, timeout=600):
@@ -301,35 +300,3 @@ def test_welch_averages_a_window_of_evaluations_and_pools_algorithms(tmp_path):
     for bad, message in [(("1000", "500"), "LO is above HI"), (("2000", "3000"), "no runs of 'x'")]:
         refused = tool("welch.py", str(path), "x", "y", "--steps", *bad)
         assert refused.returncode != 0 and refused.stderr.strip().count("\n") == 0 and message in refused.stderr
-
-
-@pytest.mark.parametrize("script", ["td3", "oparl"])
-def test_per_seed_generators_changes_the_training_draws_and_nothing_else(script, tmp_path, monkeypatch):
-    """Against an ordinary two-seed run with the same flags: the same initial weights (the same first evaluation)
-    and the same random phase (it draws nothing from torch), then other updates, their draws now coming from each
-    seed's own generator."""
-    import torch
-
-    spec = importlib.util.spec_from_file_location("per_seed_generators", os.path.join(REPO, "tools", "per_seed_generators.py"))
-    per_seed = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(per_seed)
-    for name in ("randint", "normal", "randn_like"):  # the tool replaces them in its process: restored after the test
-        monkeypatch.setattr(torch, name, getattr(torch, name))
-    monkeypatch.chdir(tmp_path)
-    flags = ["--env-id", "Pendulum-v1", "--seed", "1", "--num-seeds", "2", "--total-timesteps", "340"]
-    flags += ["--learning-starts", "300", "--batch-size", "32", "--eval-frequency", "340", "--eval-episodes", "1"]
-    module = load(script)
-    ordinary = module.main(module.parse_args([*flags, "--run-name", "a{seed}"]))
-    diagnosed = per_seed.main([script, *flags, "--run-name", "b{seed}"])
-    for k in range(2):
-        assert diagnosed["seeds_eval_returns"][k][0] == ordinary["seeds_eval_returns"][k][0]
-    assert torch.equal(diagnosed["rb"].storage[:, :300], ordinary["rb"].storage[:, :300])
-    assert not torch.equal(diagnosed["rb"].storage[:, 300:340], ordinary["rb"].storage[:, 300:340])
-    assert not torch.equal(diagnosed["actor"].fc1.weight, ordinary["actor"].fc1.weight)
-
-
-def test_per_seed_generators_refuses_what_it_cannot_do_in_one_line():
-    for flags in (["sac"], [], ["td3", "--checkpoint-frequency", "100"]):
-        result = tool("per_seed_generators.py", *flags)
-        assert result.returncode != 0 and result.stderr.strip().count("\n") == 0, result.stderr
-        assert result.stderr.startswith("per_seed_generators.py: ")
