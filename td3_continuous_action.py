@@ -214,6 +214,7 @@ def randn_like(x: torch.Tensor, generators: Optional[Sequence] = None) -> torch.
     """torch.randn_like(x); given generators (one per seed, x [num_seeds, ...]), each seed's share drawn from its own."""
     if generators is None:
         return torch.randn_like(x)
+    assert len(x) == len(generators), f"a draw for {len(generators)} seeds needs x [num_seeds, ...], got {tuple(x.shape)}"
     return torch.stack([torch.randn(x.shape[1:], generator=g, dtype=x.dtype, device=x.device) for g in generators])
 
 
@@ -358,8 +359,7 @@ def main(args: Args):
         checkpoint = join_seeds(checkpoints, nets)
         obs = restore(checkpoint, envs, nets, optimizers, **parts)
         start_step, eval_returns = checkpoint["global_step"], checkpoint["eval_returns"]
-        for generator, generator_state in zip(generators, checkpoint["generators"]):
-            generator.set_state(generator_state.clone())  # torch reads a view of a stacked tensor from its start
+        restore_generators(generators, checkpoint["generators"], start_step)
 
     def state(step: int) -> list:  # one checkpoint per seed
         extra = {"eval_returns": eval_returns, "generators": torch.stack([g.get_state() for g in generators])}  # plain values
@@ -661,7 +661,7 @@ def stop_non_finite(quantity: NonFiniteError, step: int, run_dirs: list, cudagra
 
 
 class CudaGraph:
-    """--cudagraphs: `update = CudaGraph(update)` runs `update(batch, policy_step)` as a CUDA graph, one graph
+    """--cudagraphs: `update = CudaGraph(update, generators)` runs `update(batch, policy_step)` as a CUDA graph, one graph
     per value of the arguments that are not tensors. The first `warmup` calls of each run eagerly on a side
     stream (they allocate the gradients and optimizer states the graph will reuse), the next one records the
     graph, and from then on a call copies its tensors (a tensor, or a NamedTuple of them such as a Batch) into
@@ -841,7 +841,8 @@ PER_SEED = ("eval_returns", "generators", "log_alpha")
 
 def split_seeds(state: dict, nets: dict, run_dirs: list) -> list:
     """One checkpoint per seed from a snapshot() of the stacked seeds: the seed's cut of every parameter, optimizer
-    moment and replay buffer, its env and its evaluations; the flags, the step and the process's generators in all."""
+    moment and replay buffer, its env, its evaluations and its own generators' states; the flags, the step and the
+    process's global generators in all."""
     n = len(run_dirs)
     params = {name: {key for key, _ in net.named_parameters()} for name, net in nets.items()}
     checkpoints = []
@@ -914,7 +915,9 @@ def load_checkpoints(run_dir: str) -> list:
     """The checkpoints of the seeds that trained in one process with the run in run_dir, at one step, in seed order."""
     first = load_checkpoint(run_dir)
     if "generators" not in first:
-        fail(f"--resume {run_dir} was written before each seed drew from its own generators; resume it with that version")
+        fail(
+            f"--resume {run_dir} was written before each seed had generators of its own; resume it with that version (16c370a)"
+        )
     run_dirs = [os.path.join(os.path.dirname(os.path.normpath(run_dir)), name) for name in first["run_names"]]
     checkpoints = [load_checkpoint(d) if os.path.isfile(os.path.join(d, CHECKPOINT)) else None for d in run_dirs]
     step = max(checkpoint["global_step"] for checkpoint in checkpoints if checkpoint)
@@ -928,6 +931,20 @@ def load_checkpoints(run_dir: str) -> list:
         if checkpoints[k]["seed_index"] != k:
             fail(f"--resume {run_dir}: {d} holds the checkpoint of another seed of the process")
     return checkpoints
+
+
+def restore_generators(generators: list, states: torch.Tensor, step: int):
+    """Each seed's generators as its checkpoint left them. A checkpoint from another kind of device (a GPU run resumed
+    on a CPU, or the reverse) holds states of another kind of generator: those are seeded anew from the seed and the
+    step, and the run goes on with other draws than an uninterrupted run's (as its kernels differ too)."""
+    other_kind = [len(state) != len(generator.get_state()) for generator, state in zip(generators, states)]
+    for generator, state, fresh in zip(generators, states, other_kind):
+        if fresh:
+            generator.manual_seed(generator.initial_seed() * 1_000_003 + step)
+        else:
+            generator.set_state(state.clone())  # a copy: set_state reads a row of a stacked tensor from the stack's start
+    if any(other_kind):
+        tqdm.write(f"the checkpoint's generators are not {generators[0].device.type} ones: new ones draw from step {step}")
 
 
 def save_models(args: Args, run_dirs: list, saved: dict):

@@ -380,3 +380,52 @@ def test_older_checkpoints_and_folder_templates_are_refused_in_one_line(two_seed
     (tmp_path / "runs" / "old").mkdir(parents=True)
     torch.save(old, tmp_path / "runs" / "old" / "checkpoint.pt")
     assert "written by an older" in refusal(script, ["--resume", "runs/old"], tmp_path, monkeypatch)
+    for seed in (1, 2):  # both seeds' checkpoints from before the seeds had generators of their own
+        old = {k: v for k, v in torch.load(cwd / "runs" / f"s{seed}" / "checkpoint.pt", weights_only=True).items()}
+        del old["generators"]
+        (tmp_path / "runs" / f"s{seed}").mkdir(parents=True, exist_ok=True)
+        torch.save(old, tmp_path / "runs" / f"s{seed}" / "checkpoint.pt")
+    assert "generators of its own" in refusal(script, ["--resume", "runs/s1"], tmp_path, monkeypatch)
+
+
+def test_a_checkpoint_from_another_kind_of_device_resumes_with_new_generators(capsys):
+    """A GPU run's generator states (16 bytes: seed and offset) cannot go into CPU generators, or the reverse: the
+    seeds' generators start anew from their seed and the step, and the run says so, instead of stopping."""
+    module = load(MANY_SEEDS[0])
+    generators = [torch.Generator().manual_seed(seed) for seed in (1, 2)]
+    saved = torch.stack([g.get_state() for g in generators])
+    expected = [torch.rand(3, generator=g) for g in generators]
+    module.restore_generators(generators, saved, 500)  # the same kind: exactly where they were
+    assert all(torch.equal(torch.rand(3, generator=g), e) for g, e in zip(generators, expected))
+    assert capsys.readouterr().out == ""
+    module.restore_generators(generators, torch.zeros(2, 16, dtype=torch.uint8), 500)  # CUDA generators' states
+    assert [g.initial_seed() for g in generators] == [1 * 1_000_003 + 500, 2 * 1_000_003 + 500]
+    assert "not cpu ones" in capsys.readouterr().out
+
+
+def test_one_seeds_networks_draw_their_initial_weights_in_the_scripts_order():
+    """Pins the draw order of a single-seed run's initial weights (which makes a run with --num-seeds 1 the run the
+    scripts gave before seeds had generators of their own): an actor's as three nn.Linear layers, each critic
+    ensemble's as w1, b1, w2, b2, w3, b3, each with the default init of nn.Linear (OPARL's release style: its weights
+    truncated-normal, its biases zero)."""
+    space = gym.spaces.Box(-np.ones(2, np.float32), np.ones(2, np.float32))
+    for script in MANY_SEEDS:
+        module = load(script)
+        torch.manual_seed(7)
+        actor = module.Actor(5, space, [torch.Generator().manual_seed(7)])
+        layers = [nn.Linear(5, 256), nn.Linear(256, 256)] + [nn.Linear(256, 2) for _ in range(len(list(actor.children())) - 2)]
+        for p, q in zip(actor.parameters(), [t for layer in layers for t in (layer.weight, layer.bias)]):
+            assert torch.equal(p[0], q), f"{script}: the actor's initial weights are not nn.Linear's, in order"
+        num_q = 5 if script == "oparl" else 2
+        torch.manual_seed(7)
+        qf = module.QEnsemble(5, 2, num_q, generators=[torch.Generator().manual_seed(7)])
+        expected = []
+        for fan_in, shape in [(7, (7, 256)), (7, (1, 256)), (256, (256, 256)), (256, (1, 256)), (256, (1, 256)), (256, (1,))]:
+            if script == "oparl":  # the release's style
+                bias = len(expected) % 2 == 1
+                t = torch.zeros(num_q, *shape)
+                expected.append(t if bias else nn.init.trunc_normal_(t, std=0.5 * fan_in**-0.5))
+            else:
+                expected.append(torch.empty(num_q, *shape).uniform_(-(fan_in**-0.5), fan_in**-0.5))
+        for name, p, q in zip(["w1", "b1", "w2", "b2", "w3", "b3"], qf.parameters(), expected):
+            assert torch.equal(p, q), f"{script}: the critics' {name} is not drawn where the scripts draw it"
