@@ -11,13 +11,16 @@ import torch
 from conftest import OFF_POLICY, cli_flags, critic_lr_flag, load, needs_cuda, scalars, script_command, small_args
 
 LOSSES = ["losses/qf_loss", "losses/qf_values"]
+# (script, seeds in the process): REDQ trains one seed per process (its command line refuses more)
+SEED_CASES = [(s, n) for s in OFF_POLICY for n in (1, 3) if n == 1 or s != "redq"]
 
 
 @needs_cuda
-@pytest.mark.parametrize("script", OFF_POLICY)
-def test_graphs_train_as_the_eager_updates_do(script, tmp_path, monkeypatch):
+@pytest.mark.parametrize("script,num_seeds", SEED_CASES)
+def test_graphs_train_as_the_eager_updates_do(script, num_seeds, tmp_path, monkeypatch):
     """Same seed, with and without --cudagraphs: the same losses at every logged step (the first
-    updates run eagerly as warm-up, the rest are replays) and the same final actor."""
+    updates run eagerly as warm-up, the rest are replays) and the same final actor; with 3 seeds in
+    one process, for every seed (each seed's generator advances inside the graphs as it does eagerly)."""
     monkeypatch.chdir(tmp_path)
     module = load(script)
     runs = {}
@@ -29,29 +32,39 @@ def test_graphs_train_as_the_eager_updates_do(script, tmp_path, monkeypatch):
             learning_starts=300,
             eval_frequency=800,
             cudagraphs=graphs,
-            run_name=f"graphs_{graphs}",
+            num_seeds=num_seeds,
+            run_name=f"graphs_{graphs}_{{seed}}",
         )
         runs[graphs] = module.main(args)
-    eager, graphed = (scalars(runs[g]["run_dir"]) for g in (False, True))
-    for tag in LOSSES:
-        steps = [step for step, _ in eager[tag]]
-        assert steps == [step for step, _ in graphed[tag]] and len(steps) >= 4, tag
-        torch.testing.assert_close(
-            torch.tensor([v for _, v in graphed[tag]]), torch.tensor([v for _, v in eager[tag]]), rtol=1e-4, atol=1e-5
-        )
+    assert len(runs[True]["run_dirs"]) == num_seeds
+    for eager_dir, graphed_dir in zip(runs[False]["run_dirs"], runs[True]["run_dirs"]):
+        eager, graphed = scalars(eager_dir), scalars(graphed_dir)
+        for tag in LOSSES:
+            steps = [step for step, _ in eager[tag]]
+            assert steps == [step for step, _ in graphed[tag]] and len(steps) >= 4, (eager_dir, tag)
+            torch.testing.assert_close(
+                torch.tensor([v for _, v in graphed[tag]]), torch.tensor([v for _, v in eager[tag]]), rtol=1e-4, atol=1e-5
+            )
     for (name, a), b in zip(runs[False]["actor"].state_dict().items(), runs[True]["actor"].state_dict().values()):
         torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-4, msg=name)
 
 
 @needs_cuda
-@pytest.mark.parametrize("script", OFF_POLICY)
-def test_training_syncs_nothing_with_the_host_once_recorded(script, tmp_path, monkeypatch):
+@pytest.mark.parametrize("script,num_seeds", SEED_CASES)
+def test_training_syncs_nothing_with_the_host_once_recorded(script, num_seeds, tmp_path, monkeypatch):
     """From drawing a batch to the end of a replayed update the host waits for nothing: under torch's
     'error' sync debug mode any .item(), host copy or NaN check there would raise."""
     monkeypatch.chdir(tmp_path)
     module = load(script)
     args = small_args(
-        module, env_id="Pendulum-v1", total_timesteps=400, learning_starts=300, eval_frequency=400, cudagraphs=True
+        module,
+        env_id="Pendulum-v1",
+        total_timesteps=400,
+        learning_starts=300,
+        eval_frequency=400,
+        cudagraphs=True,
+        num_seeds=num_seeds,
+        run_name="strict_{seed}",
     )
     sample, call = module.ReplayBuffer.sample, module.CudaGraph.__call__
     replays = []

@@ -1,5 +1,6 @@
 """The measuring tools run and report what they say, on tiny settings."""
 
+import csv
 import os
 import shutil
 import subprocess
@@ -111,6 +112,39 @@ def test_throughput_runs_a_script_and_imports_given_relative_to_the_caller(tmp_p
     )
     assert result.returncode == 0, result.stderr
     assert "| `other/script.py` |" in result.stdout
+
+
+def test_throughput_survives_a_run_that_writes_more_than_a_pipe_holds(tmp_path):
+    """A run that writes megabytes to stderr (dm-control under NumPy 2.5 warns at every step) must not block on a
+    full pipe; a run that fails is reported by the last line it wrote."""
+    chatty = tmp_path / "chatty.py"
+    chatty.write_text("import sys\nlearning_starts: int = 0\nsys.stderr.write('warning\\n' * 200_000)\n")
+    result = tool("throughput.py", str(chatty), "--steps", "10", "--learning-starts", "10", "--repeats", "1", timeout=60)
+    assert result.returncode == 0, result.stderr
+    failing = tmp_path / "failing.py"
+    failing.write_text(
+        "import sys\nlearning_starts: int = 0\nsys.stderr.write('noise\\n' * 50_000 + 'the cause\\n')\nsys.exit(3)\n"
+    )
+    result = tool("throughput.py", str(failing), "--steps", "10", "--learning-starts", "10", "--repeats", "1", timeout=60)
+    assert result.returncode != 0 and result.stderr.strip().splitlines()[-1].endswith("failed (3): the cause")
+
+
+def test_throughput_window_reads_the_logged_rate_of_each_timed_window(tmp_path):
+    """--window: one run per entry and repeat; every 1000-step window after learning starts + warm-up is a sample, and
+    a process's agent-steps/s are its steps/s times its seeds."""
+    out = tmp_path / "w.csv"
+    result = tool(
+        "throughput.py", "td3 --batch-size 32 --num-seeds 2", "--env-id", "Pendulum-v1", "--learning-starts", "100",
+        "--warmup", "100", "--steps", "1900", "--repeats", "1", "--window", "--csv", str(out),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    with open(out) as f:
+        rows = list(csv.DictReader(f))
+    assert [row["window_end"] for row in rows] == ["2000"]  # [1000, 2000): the only window from step 200 on
+    assert rows[0]["seeds_per_copy"] == "2" and rows[0]["copies"] == "1"
+    assert float(rows[0]["agent_steps_per_s"]) == pytest.approx(2 * float(rows[0]["steps_per_s"]), abs=0.1)
+    result = tool("throughput.py", "td3", "--window", "--learning-starts", "100", "--steps", "1000")
+    assert result.returncode != 0 and "--steps must be >= 1900" in result.stderr.strip().splitlines()[-1]
 
 
 def test_throughput_refuses_bad_settings():

@@ -13,6 +13,16 @@ it through tools/mkl_avx512.sh (MKL's AVX-512 kernels on AMD CPUs), e.g.
     python tools/throughput.py oparl "mkl-avx512:oparl"   # the same script with tools/mkl_avx512.sh
     python tools/throughput.py oparl "oparl --num-seeds 2" "2x:oparl"   # 2 seeds in one process, 2 processes at once
 
+With `--window`, every entry runs once per repeat for L + T steps, and its figure is read from the
+`charts/SPS` that our scripts log for each window of 1000 steps (evaluations excluded), over the windows that
+start `--warmup` training steps or more after learning starts: start-up, the random phase, the first
+updates (and, with `--cudagraphs`, their recording) fall outside the timed windows, as in LeanRL's timing.
+Each window is one sample (the median and range are over all windows of all repeats); one run costs one
+process start instead of two, which is what a short GPU lease can afford. Our scripts only.
+
+    python tools/throughput.py "oparl --cudagraphs" "oparl --cudagraphs --num-seeds 16" "8x:oparl --cudagraphs --num-seeds 16" \
+        --cuda --window --env-id dm_control/cartpole-swingup-v0 --learning-starts 500 --steps 3500 --repeats 1 --csv scaling.csv
+
 An entry "Kx:..." runs K copies at once (each copy's steps/s is reported; its agent-steps/s are K times that),
 and an entry with `--num-seeds N` trains N seeds (agent-steps/s: N times its steps/s).
     PYTHONPATH=../cleanrl python tools/throughput.py td3 "../cleanrl-venv/bin/python ../cleanrl/cleanrl/td3_continuous_action.py"
@@ -82,6 +92,7 @@ def agents_of(entry: str) -> int:
 def timed_run(
     entry: str, env_id: str, steps: int, learning_starts: int, threads: int, workdir: str, cuda: bool = False
 ) -> float:
+    """Runs the entry (all its copies at once) in workdir and returns the wall time in seconds."""
     copies, entry = copies_of(entry)
     prefix, ours = command_of(entry)
     flags = ["--env-id", env_id, "--total-timesteps", str(steps), "--seed", "1"] + ([] if cuda else ["--no-cuda"])
@@ -97,19 +108,93 @@ def timed_run(
     runs = []
     for copy in range(copies):  # each copy its own run folder
         run_flags = [f + f"_{copy}" if f.startswith("throughput_") else f for f in flags] if copies > 1 else flags
-        runs.append(
-            subprocess.Popen(
-                prefix + run_flags, cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
-            )
-        )
-    results = [(run.wait(), run.stderr.read()) for run in runs]
+        # stderr into a file, not a pipe: a pipe nobody reads while the run goes on blocks a run that writes more than
+        # the pipe holds (64 KiB), as dm-control under NumPy 2.5 does with a DeprecationWarning at every step
+        log = tempfile.TemporaryFile(mode="w+", dir=workdir)
+        runs.append((subprocess.Popen(prefix + run_flags, cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=log), log))
+    results = [(run.wait(), log) for run, log in runs]
     elapsed = time.perf_counter() - start
-    for returncode, stderr in results:
+    for returncode, log in results:
+        log.seek(0)
+        stderr = log.read().strip()
+        log.close()
         if returncode != 0:
-            sys.exit(
-                f"error: {entry!r} failed ({returncode}): {stderr.strip().splitlines()[-1] if stderr.strip() else 'no output'}"
-            )
+            sys.exit(f"error: {entry!r} failed ({returncode}): {stderr.splitlines()[-1] if stderr else 'no output'}")
     return elapsed
+
+
+def logged_sps(workdir: str) -> dict:
+    """{window end step: [charts/SPS of each run folder under workdir/runs]} (one folder per seed, each logs its process's rate)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    windows = {}
+    runs_dir = os.path.join(workdir, "runs")
+    for name in sorted(os.listdir(runs_dir)) if os.path.isdir(runs_dir) else []:
+        acc = EventAccumulator(os.path.join(runs_dir, name), size_guidance={"scalars": 0})
+        acc.Reload()
+        for event in acc.Scalars("charts/SPS") if "charts/SPS" in acc.Tags()["scalars"] else []:
+            windows.setdefault(event.step, []).append(event.value)
+    return windows
+
+
+def window_run(entry: str, args, workdir: str) -> tuple[list, float]:
+    """One run of L + T steps; [(window end, steps/s of a process, agent-steps/s of all its seeds)] for the timed
+    windows, and the wall time. A process's seeds all log its rate, so the agent-steps/s are the sum over folders."""
+    if not command_of(copies_of(entry)[1].removeprefix(MKL_AVX512))[1]:
+        sys.exit(f"error: --window reads charts/SPS, which only this repository's scripts log (got {entry!r})")
+    rundir = tempfile.mkdtemp(dir=workdir)
+    took = timed_run(
+        entry, args.env_id, args.learning_starts + args.steps, args.learning_starts, args.threads, rundir, args.cuda
+    )
+    first = args.learning_starts + args.warmup  # the first step a timed window may start at
+    timed = []
+    for end, values in sorted(logged_sps(rundir).items()):
+        if end + 1 - 1000 >= first and len(values) == agents_of(entry):
+            timed.append((end + 1, statistics.mean(values), sum(values)))
+    if not timed:
+        sys.exit(f"error: {entry!r} logged no timed window (see --window's help)")
+    return timed, took
+
+
+CSV_FIELDS = [
+    "entry",
+    "env_id",
+    "device",
+    "copies",
+    "seeds_per_copy",
+    "repeat",
+    "window_end",
+    "steps_per_s",
+    "agent_steps_per_s",
+    "wall_s",
+]
+
+
+def write_rows(path: str, entry: str, args, device: str, rows: list):
+    """Appends rows (repeat, window end or "", steps/s of a process, agent-steps/s, wall seconds of the run) to the CSV."""
+    import csv
+
+    copies = copies_of(entry)[0]
+    new = not os.path.exists(path) or os.path.getsize(path) == 0
+    with open(path, "a", newline="") as f:
+        writer = csv.writer(f)
+        if new:
+            writer.writerow(CSV_FIELDS)
+        for repeat, end, process, agents, took in rows:
+            writer.writerow(
+                [
+                    entry,
+                    args.env_id,
+                    device,
+                    copies,
+                    agents_of(entry) // copies,
+                    repeat,
+                    end,
+                    f"{process:.2f}",
+                    f"{agents:.1f}",
+                    f"{took:.1f}",
+                ]
+            )
 
 
 def cpu_name() -> str:
@@ -140,6 +225,13 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--baseline", default=None, help="the entry the ratios are relative to (default: the first)")
     parser.add_argument("--cuda", action="store_true", help="let every entry use the GPU (no --no-cuda)")
+    parser.add_argument(
+        "--window",
+        action="store_true",
+        help="one run of L + T steps per entry and repeat, timed by the charts/SPS of its 1000-step windows (our scripts only)",
+    )
+    parser.add_argument("--warmup", type=int, default=500, help="with --window: training steps before the first timed window")
+    parser.add_argument("--csv", default=None, help="append one row per timed run (--window: per window) to this CSV")
     args = parser.parse_args(argv)
     for name, value in [
         ("--steps", args.steps),
@@ -149,37 +241,68 @@ def main(argv=None):
     ]:
         if value <= 0:
             parser.error(f"{name} must be > 0, got {value}")
+    if args.warmup < 0:
+        parser.error(f"--warmup must be >= 0, got {args.warmup}")
+    first_window = -(-(args.learning_starts + args.warmup) // 1000) * 1000  # windows are steps [1000 k, 1000 (k + 1))
+    if args.window and first_window + 1000 > args.learning_starts + args.steps:
+        parser.error(
+            f"--window times 1000-step windows from step {first_window} on (--learning-starts + --warmup, rounded up): "
+            f"--steps must be >= {first_window + 1000 - args.learning_starts}, got {args.steps}"
+        )
     baseline = args.baseline or args.entries[0]
     if baseline not in args.entries:
         parser.error(f"--baseline {baseline!r} is not one of the entries {args.entries}")
 
     sps = {entry: [] for entry in args.entries}
+    device = gpu_name() if args.cuda else cpu_name()
     with tempfile.TemporaryDirectory() as workdir:
-        for entry in args.entries:  # warm-up: file caches, first imports
+        for entry in [] if args.window else args.entries:  # warm-up: file caches, first imports
             took = timed_run(entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda)
             # as each entry ends: a slow entry shows at once, a stuck one by its missing line
             print(f"warm-up {entry}: {took:.1f} s", file=sys.stderr, flush=True)
         for repeat in range(args.repeats):
             for entry in args.entries:
-                short = timed_run(
-                    entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda
-                )
-                long = timed_run(
-                    entry,
-                    args.env_id,
-                    args.learning_starts + args.steps,
-                    args.learning_starts,
-                    args.threads,
-                    workdir,
-                    args.cuda,
-                )
-                sps[entry].append(args.steps / (long - short))
-                print(f"repeat {repeat + 1}/{args.repeats} {entry}: {sps[entry][-1]:.1f} steps/s", file=sys.stderr, flush=True)
+                if args.window:
+                    timed, took = window_run(entry, args, workdir)
+                    sps[entry] += [process for _, process, _ in timed]
+                    rows = [(repeat + 1, end, process, agents, took) for end, process, agents in timed]
+                    shown = ", ".join(f"{process:.1f}" for _, process, _ in timed)
+                    print(
+                        f"repeat {repeat + 1}/{args.repeats} {entry}: {shown} steps/s ({took:.1f} s)",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                else:
+                    short = timed_run(
+                        entry, args.env_id, args.learning_starts, args.learning_starts, args.threads, workdir, args.cuda
+                    )
+                    long = timed_run(
+                        entry,
+                        args.env_id,
+                        args.learning_starts + args.steps,
+                        args.learning_starts,
+                        args.threads,
+                        workdir,
+                        args.cuda,
+                    )
+                    sps[entry].append(args.steps / (long - short))
+                    rows = [(repeat + 1, "", sps[entry][-1], sps[entry][-1] * agents_of(entry), long)]
+                    print(
+                        f"repeat {repeat + 1}/{args.repeats} {entry}: {sps[entry][-1]:.1f} steps/s",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                if args.csv:
+                    write_rows(args.csv, entry, args, device, rows)
 
     reference = statistics.median(sps[baseline])
-    device = gpu_name() if args.cuda else cpu_name()
+    how = (
+        f"median of the 1000-step windows from step {first_window} on, {args.repeats} run(s) each"
+        if args.window
+        else f"median of {args.repeats}"
+    )
     print(
-        f"\n{args.env_id}, {args.threads} thread(s), {args.steps} training steps after {args.learning_starts} random ones, median of {args.repeats}; {device}\n"
+        f"\n{args.env_id}, {args.threads} thread(s), {args.steps} training steps after {args.learning_starts} random ones, {how}; {device}\n"
     )
     print(f"| entry | steps/s (median) | range | vs `{baseline}` | agent-steps/s (steps/s x seeds at once) |")
     print("|---|---|---|---|---|")

@@ -1,0 +1,79 @@
+#!/usr/bin/env bash
+# Many seeds on one GPU: agent-steps/s of oparl, td3 and sac --cudagraphs with N seeds in one process, and of
+# K processes x N seeds with and without MPS, each timed by tools/throughput.py --window (the charts/SPS of
+# 1000-step windows after warm-up: start-up, the random phase, graph recording and evaluations excluded).
+# Steps run in order of priority and each appends to $OUT/scaling.csv, so a lease that ends early still
+# leaves the steps before it:
+#     OUT=gpu_out BUDGET=540 bash tools/gpu_seed_scaling.sh [FIRST_STEP]
+# BUDGET: seconds; a step that would not fit is skipped and named in $OUT/log.txt. FIRST_STEP resumes a list
+# cut short (a second call on a warm machine). Needs CUDA, MPS (nvidia-cuda-mps-control) and the NumPy that
+# requirements.txt pins: carry its wheel (docs/sweeps.md, "One GPU"); under NumPy 2.5 dm-control writes a
+# DeprecationWarning at every environment step (about 8 us each and megabytes of log).
+set -u
+OUT=${OUT:-gpu_out}
+BUDGET=${BUDGET:-540}
+FIRST=${1:-1}
+mkdir -p "$OUT"
+LOG=$OUT/log.txt
+CSV=$OUT/scaling.csv
+export PYTHONUNBUFFERED=1
+n=0
+step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budget, within what is left
+    n=$((n + 1))
+    local need=$1
+    shift
+    if ((n < FIRST)); then return; fi
+    if ((SECONDS + need > BUDGET)); then
+        echo "step $n skipped (needs ~${need} s, $((BUDGET - SECONDS)) s left): $1" | tee -a "$LOG"
+        return
+    fi
+    echo "== step $n at ${SECONDS} s: $1" | tee -a "$LOG"
+    timeout $((BUDGET - SECONDS)) bash -c "$1" >>"$LOG" 2>&1 || echo "step $n failed ($?): $1" | tee -a "$LOG"
+}
+time_it() { # time_it ENV_ID ENTRY [STEPS]: one run of the entry (500 random steps, then STEPS), its windows appended to the CSV
+    python tools/throughput.py "$2" --env-id "$1" --cuda --window --learning-starts 500 --steps "${3:-2500}" --repeats 1 --csv "$CSV"
+}
+mps() { # mps on|off
+    if [ "$1" = on ]; then nvidia-cuda-mps-control -d; else echo quit | nvidia-cuda-mps-control; fi
+    sleep 2
+}
+export -f time_it mps
+export CSV
+E=${E:-dm_control/cartpole-swingup-v0}
+G=${G---cudagraphs}
+
+{
+    nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
+    python -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
+    grep -m1 "model name" /proc/cpuinfo
+    nproc
+    pin=$(sed -n 's/^numpy==//p' requirements.txt)
+    python -c "import numpy, sys; v = numpy.__version__; print('numpy', v, '' if v == sys.argv[1] else '(requirements.txt pins ' + sys.argv[1] + ')')" "$pin"
+} >"$OUT/machine.txt" 2>&1
+
+step 60 "python -m pytest tests/test_cudagraphs.py -q -x -p no:cacheprovider -k 'syncs and 3]'"
+step 25 "time_it $E 'oparl $G'"
+step 5 "mps on"
+step 50 "time_it $E '16x:oparl $G --num-seeds 16'"
+step 45 "time_it $E '8x:oparl $G --num-seeds 16'"
+step 45 "time_it $E '16x:oparl $G --num-seeds 8'"
+step 60 "time_it $E '8x:oparl $G --num-seeds 32'"
+step 5 "mps off"
+step 45 "time_it $E '8x:oparl $G --num-seeds 16'"
+step 25 "time_it $E 'td3 $G'"
+step 25 "time_it $E 'sac $G'"
+step 25 "time_it $E 'oparl $G --num-seeds 4'"
+step 35 "time_it $E 'oparl $G --num-seeds 16'"
+step 70 "time_it $E 'oparl $G --num-seeds 64' 1500"
+step 5 "mps on"
+step 50 "time_it $E '16x:td3 $G --num-seeds 16'"
+step 50 "time_it $E '16x:sac $G --num-seeds 16'"
+step 60 "time_it dm_control/walker-walk-v0 '16x:oparl $G --num-seeds 16'"
+step 5 "mps off"
+step 25 "time_it $E 'td3 $G --num-seeds 4'"
+step 25 "time_it $E 'sac $G --num-seeds 4'"
+step 35 "time_it $E 'td3 $G --num-seeds 16'"
+step 35 "time_it $E 'sac $G --num-seeds 16'"
+step 60 "time_it $E 'td3 $G --num-seeds 64' 1500"
+step 60 "time_it $E 'sac $G --num-seeds 64' 1500"
+echo "done at ${SECONDS} s" | tee -a "$LOG"
