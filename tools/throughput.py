@@ -18,7 +18,8 @@ With `--window`, every entry runs once per repeat for L + T steps, and its figur
 start `--warmup` training steps or more after learning starts: start-up, the random phase, the first
 updates (and, with `--cudagraphs`, their recording) fall outside the timed windows, as in LeanRL's timing.
 Each window is one sample (the median and range are over all windows of all repeats); one run costs one
-process start instead of two, which is what a short GPU lease can afford. Our scripts only.
+process start instead of two, which is what a short GPU lease can afford. Another script (CleanRL's) is read
+by the cumulative charts/SPS it logs (see logged_sps) and must log it under runs/ in its working folder.
 
     python tools/throughput.py "oparl --cudagraphs" "oparl --cudagraphs --num-seeds 16" "8x:oparl --cudagraphs --num-seeds 16" \
         --cuda --window --env-id dm_control/cartpole-swingup-v0 --learning-starts 500 --steps 3500 --repeats 1 --csv scaling.csv
@@ -123,8 +124,13 @@ def timed_run(
     return elapsed
 
 
-def logged_sps(workdir: str) -> dict:
-    """{window end step: [charts/SPS of each run folder under workdir/runs]} (one folder per seed, each logs its process's rate)."""
+def logged_sps(workdir: str, cumulative: bool = False) -> dict:
+    """{window end step: [the steps/s of each run folder under workdir/runs over the 1000 steps before it]}.
+
+    Our scripts log charts/SPS per 1000-step window (one folder per seed, each with its process's rate). Other
+    scripts, CleanRL's, log charts/SPS as int(step / seconds since the loop started) (cumulative=True): a window's
+    rate is then 1000 / (t(end) - t(end - 1000)) with t(s) = s / SPS(s), the integer rounding of SPS costing about
+    0.5 / SPS of t (under 1% of a window past 2000 steps)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     windows = {}
@@ -132,27 +138,32 @@ def logged_sps(workdir: str) -> dict:
     for name in sorted(os.listdir(runs_dir)) if os.path.isdir(runs_dir) else []:
         acc = EventAccumulator(os.path.join(runs_dir, name), size_guidance={"scalars": 0})
         acc.Reload()
-        for event in acc.Scalars("charts/SPS") if "charts/SPS" in acc.Tags()["scalars"] else []:
-            windows.setdefault(event.step, []).append(event.value)
+        events = acc.Scalars("charts/SPS") if "charts/SPS" in acc.Tags()["scalars"] else []
+        if not cumulative:
+            for event in events:
+                windows.setdefault(event.step + 1, []).append(event.value)
+            continue
+        seconds = {e.step: e.step / e.value for e in events if e.step % 1000 == 0 and e.step > 0 and e.value > 0}
+        for step, t in sorted(seconds.items()):
+            if step + 1000 in seconds and seconds[step + 1000] > t:
+                windows.setdefault(step + 1000, []).append(1000 / (seconds[step + 1000] - t))
     return windows
 
 
 def window_run(entry: str, args, workdir: str) -> tuple[list, float]:
     """One run of L + T steps; [(window end, steps/s of a process, agent-steps/s of all its seeds)] for the timed
     windows, and the wall time. A process's seeds all log its rate, so the agent-steps/s are the sum over folders."""
-    if not command_of(copies_of(entry)[1].removeprefix(MKL_AVX512))[1]:
-        sys.exit(f"error: --window reads charts/SPS, which only this repository's scripts log (got {entry!r})")
+    ours = command_of(copies_of(entry)[1])[1]
     rundir = tempfile.mkdtemp(dir=workdir)
-    took = timed_run(
-        entry, args.env_id, args.learning_starts + args.steps, args.learning_starts, args.threads, rundir, args.cuda
-    )
+    steps = args.learning_starts + args.steps + (0 if ours else 1)  # CleanRL's loop logs step s only if it runs s + 1 steps
+    took = timed_run(entry, args.env_id, steps, args.learning_starts, args.threads, rundir, args.cuda)
     first = args.learning_starts + args.warmup  # the first step a timed window may start at
     timed = []
-    for end, values in sorted(logged_sps(rundir).items()):
-        if end + 1 - 1000 >= first and len(values) == agents_of(entry):
-            timed.append((end + 1, statistics.mean(values), sum(values)))
+    for end, values in sorted(logged_sps(rundir, cumulative=not ours).items()):
+        if end - 1000 >= first and len(values) == agents_of(entry):
+            timed.append((end, statistics.mean(values), sum(values)))
     if not timed:
-        sys.exit(f"error: {entry!r} logged no timed window (see --window's help)")
+        sys.exit(f"error: {entry!r} logged no timed window of charts/SPS (see --window's help)")
     return timed, took
 
 
@@ -228,7 +239,7 @@ def main(argv=None):
     parser.add_argument(
         "--window",
         action="store_true",
-        help="one run of L + T steps per entry and repeat, timed by the charts/SPS of its 1000-step windows (our scripts only)",
+        help="one run of L + T steps per entry and repeat, timed by the charts/SPS of its 1000-step windows",
     )
     parser.add_argument("--warmup", type=int, default=500, help="with --window: training steps before the first timed window")
     parser.add_argument("--csv", default=None, help="append one row per timed run (--window: per window) to this CSV")
