@@ -358,3 +358,17 @@ def test_welch_averages_a_window_of_evaluations_and_pools_algorithms(tmp_path):
     for bad, message in [(("1000", "500"), "LO is above HI"), (("2000", "3000"), "no runs of 'x'")]:
         refused = tool("welch.py", str(path), "x", "y", "--steps", *bad)
         assert refused.returncode != 0 and refused.stderr.strip().count("\n") == 0 and message in refused.stderr
+
+
+def test_env_cost_times_each_task_through_the_scripts_environment_layer():
+    result = tool("env_cost.py", "Pendulum-v1", "MountainCarContinuous-v0", "--envs", "2", "--steps", "50")
+    assert result.returncode == 0, result.stderr
+    rows = [
+        line.split("|")
+        for line in result.stdout.splitlines()
+        if line.startswith("| Pendulum") or line.startswith("| Mountain")
+    ]
+    assert [row[1].strip() for row in rows] == ["Pendulum-v1", "MountainCarContinuous-v0"]
+    assert all(0 < float(row[2]) < 100 for row in rows)  # milliseconds per step
+    result = tool("env_cost.py", "NoSuchTask-v0", "--envs", "1", "--steps", "1")
+    assert result.returncode != 0 and result.stderr.strip().splitlines()[-1].startswith("error: unknown --env-id")

@@ -1,0 +1,63 @@
+"""What one environment step costs on this CPU, through a script's own environment layer (make_env and its
+wrappers), stepped as a many-seed process steps its environments: one after another, random actions.
+
+    python tools/env_cost.py dm_control/cartpole-swingup-v0 dm_control/walker-walk-v0 --envs 16 --steps 300
+
+A process training N seeds spends about N times this per training step on the CPU before any network runs,
+which bounds its steps/s however fast the GPU is (docs/speed.md, "On one GPU").
+"""
+
+import argparse
+import importlib.util
+import os
+import time
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def load(script: str):
+    spec = importlib.util.spec_from_file_location(script, os.path.join(REPO, f"{script}_continuous_action.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def step_cost(make_env, env_id: str, num_envs: int, steps: int) -> float:
+    """Seconds per environment step, resets included, over steps x num_envs steps."""
+    envs = [make_env(env_id, seed) for seed in range(num_envs)]
+    for k, env in enumerate(envs):
+        env.reset(seed=k)
+        env.action_space.seed(k)
+    start = time.perf_counter()
+    for _ in range(steps):
+        for env in envs:
+            _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            if terminated or truncated:
+                env.reset()
+    took = time.perf_counter() - start
+    for env in envs:
+        env.close()
+    return took / (steps * num_envs)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("env_ids", nargs="+")
+    parser.add_argument("--envs", type=int, default=16, help="environments stepped one after another")
+    parser.add_argument("--steps", type=int, default=300, help="steps of each environment")
+    parser.add_argument("--script", default="td3", help="whose make_env (all off-policy scripts share one layer)")
+    args = parser.parse_args(argv)
+    if args.envs <= 0 or args.steps <= 0:
+        parser.error(f"--envs and --steps must be > 0, got {args.envs} and {args.steps}")
+    if not os.path.exists(os.path.join(REPO, f"{args.script}_continuous_action.py")):
+        parser.error(f"--script {args.script}: no {args.script}_continuous_action.py")
+    make_env = load(args.script).make_env
+    print(f"| task | ms per environment step ({args.envs} environments x {args.steps} steps) |")
+    print("|---|---|")
+    for env_id in args.env_ids:
+        cost = step_cost(make_env, env_id, args.envs, args.steps)  # an unknown task: make_env's one-line error
+        print(f"| {env_id} | {cost * 1e3:.3f} |")
+
+
+if __name__ == "__main__":
+    main()
