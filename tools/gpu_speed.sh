@@ -1,21 +1,26 @@
 #!/usr/bin/env bash
 # One-seed GPU speed beside CleanRL (docs/speed.md, "GPU: --cudagraphs"): CleanRL's TD3 and SAC and our td3, sac,
-# oparl and redq --cudagraphs, 3 repeats interleaved, each run timed by tools/throughput.py --window (one process
-# start per run; CleanRL's cumulative charts/SPS is turned into window rates), then a py-spy profile of td3 and
-# oparl --cudagraphs (where the host's time goes), each appended to $OUT in order of priority within a budget:
-#     OUT=gpu_out BUDGET=540 CLEANRL=.cleanrl bash tools/gpu_speed.sh [FIRST_STEP]
-# CLEANRL: a folder holding CleanRL's cleanrl/{td3,sac}_continuous_action.py and cleanrl_utils/ at the commit
-# docs/speed.md names, e.g. `mkdir .cleanrl && git -C ../cleanrl archive fe8d8a0 cleanrl/td3_continuous_action.py
-# cleanrl/sac_continuous_action.py cleanrl_utils | tar -x -C .cleanrl` (list it in .git/info/exclude and carry it).
-# The profile needs py-spy (carry its wheel) and is skipped without it.
+# oparl and redq --cudagraphs on Hopper-v4, 3 repeats interleaved, each run timed by tools/throughput.py --window
+# (one process start per run; CleanRL's cumulative charts/SPS is read by its events' times), then py-spy profiles
+# of td3 --cudagraphs and oparl --cudagraphs (where the host's time goes), then ours on cartpole-swingup (CleanRL's
+# scripts do not run DeepMind Control tasks). Results go to $OUT (on the device machine, the folder that comes
+# back; default here: gpu_out) in order of priority within a budget. The first step needs about 480 s, so the
+# profiles and the second task need a second call from FIRST_STEP 2:
+#     BUDGET=540 bash tools/gpu_speed.sh [FIRST_STEP]
+# CLEANRL (default .cleanrl): a folder holding CleanRL's cleanrl/{td3,sac}_continuous_action.py and cleanrl_utils/
+# at the commit docs/speed.md names, e.g. `mkdir .cleanrl && git -C ../cleanrl archive fe8d8a0
+# cleanrl/td3_continuous_action.py cleanrl/sac_continuous_action.py cleanrl_utils | tar -x -C .cleanrl` (list it in
+# .git/info/exclude and carry it); without it only our scripts are timed. The profiles need py-spy: carry its
+# wheel in .whl/ (the install puts its binary in /tmp/site/bin); without it they are skipped.
 set -u
 OUT=${OUT:-gpu_out}
 BUDGET=${BUDGET:-540}
 FIRST=${1:-1}
-CLEANRL=$(cd "${CLEANRL:-.cleanrl}" && pwd) || exit 1
+CLEANRL=$(cd "${CLEANRL:-.cleanrl}" 2>/dev/null && pwd)
 mkdir -p "$OUT"
 LOG=$OUT/log.txt
-export PATH=$PATH:/tmp/site/bin CSV=$OUT/speed.csv PYTHONUNBUFFERED=1 PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$CLEANRL C=$CLEANRL/cleanrl
+export PATH=$PATH:/tmp/site/bin CSV=$OUT/speed.csv PYTHONUNBUFFERED=1 PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$CLEANRL
+export CLEANRL C=$CLEANRL/cleanrl
 n=0
 step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budget, within what is left
     n=$((n + 1))
@@ -29,12 +34,19 @@ step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budg
     echo "== step $n at ${SECONDS} s: $1" | tee -a "$LOG"
     timeout $((BUDGET - SECONDS)) bash -c "$1" >>"$LOG" 2>&1 || echo "step $n failed ($?): $1" | tee -a "$LOG"
 }
-speed() { # speed ENV_ID REPEATS: every entry once per repeat, interleaved; one 1000-step window per run
-    python tools/throughput.py "$C/td3_continuous_action.py" "td3 --cudagraphs" "oparl --cudagraphs" \
-        "$C/sac_continuous_action.py" "sac --cudagraphs" "redq --cudagraphs" --baseline "$C/td3_continuous_action.py" \
-        --env-id "$1" --cuda --window --learning-starts 500 --steps 1500 --repeats "$2" --csv "$CSV"
+speed() { # speed ENV_ID REPEATS [cleanrl]: every entry once per repeat, interleaved; one 1000-step window per run
+    local entries=("td3 --cudagraphs" "oparl --cudagraphs" "sac --cudagraphs" "redq --cudagraphs")
+    if [ "${3:-}" = cleanrl ] && [ -n "$CLEANRL" ]; then
+        entries=("$C/td3_continuous_action.py" "${entries[@]}" "$C/sac_continuous_action.py")
+    fi
+    python tools/throughput.py "${entries[@]}" --env-id "$1" --cuda --window --learning-starts 500 --steps 1500 \
+        --repeats "$2" --csv "$CSV"
 }
 profile() { # profile SCRIPT ENV_ID: py-spy's share of the run's time by phase
+    if ! command -v py-spy >/dev/null; then
+        echo "no py-spy: profile skipped"
+        return 0
+    fi
     python tools/profile_run.py "$1" --env-id "$2" --cudagraphs --learning-starts 500 --total-timesteps 4000 \
         --eval-frequency 1000000000 --eval-episodes 1
 }
@@ -49,8 +61,9 @@ export -f speed profile
     python -c "import numpy, sys; v = numpy.__version__; print('numpy', v, '' if v == sys.argv[1] else '(requirements.txt pins ' + sys.argv[1] + ')')" "$pin"
 } >"$OUT/machine.txt" 2>&1
 
-step 420 "speed Hopper-v4 3"
-step 60 "command -v py-spy >/dev/null && profile td3 Hopper-v4 > $OUT/profile_td3.txt"
-step 60 "command -v py-spy >/dev/null && profile oparl Hopper-v4 > $OUT/profile_oparl.txt"
-step 300 "speed dm_control/cartpole-swingup-v0 2"
+[ -n "$CLEANRL" ] || echo "no CleanRL folder (CLEANRL=${CLEANRL:-.cleanrl}): our scripts only" | tee -a "$LOG"
+step 480 "speed Hopper-v4 3 cleanrl"
+step 60 "profile td3 Hopper-v4 > $OUT/profile_td3.txt"
+step 60 "profile oparl Hopper-v4 > $OUT/profile_oparl.txt"
+step 240 "speed dm_control/cartpole-swingup-v0 3"
 echo "done at ${SECONDS} s" | tee -a "$LOG"

@@ -33,6 +33,7 @@ PHASES = [
     ("environment step", {"Wrapper.step", "TimeLimit.step", "OrderEnforcing.step", "PassiveEnvChecker.step"}),
     ("environment reset", {"Wrapper.reset", "TimeLimit.reset", "OrderEnforcing.reset", "PassiveEnvChecker.reset"}),
     ("checkpoints", {"write_checkpoint"}),
+    ("--cudagraphs: graph replay and its input copies", {"CudaGraph.__call__"}),  # warm-up calls: the phases above
     ("logging (TensorBoard)", {"SummaryWriter.add_scalar", "SummaryWriter.add_text"}),
 ]
 # what main calls directly to pick an action

@@ -111,7 +111,7 @@ def timed_run(
         run_flags = [f + f"_{copy}" if f.startswith("throughput_") else f for f in flags] if copies > 1 else flags
         # stderr into a file, not a pipe: a pipe nobody reads while the run goes on blocks a run that writes more than
         # the pipe holds (64 KiB), as dm-control under NumPy 2.5 does with a DeprecationWarning at every step
-        log = tempfile.TemporaryFile(mode="w+", dir=workdir)
+        log = tempfile.TemporaryFile(mode="w+", dir=workdir)  # noqa: SIM115 (closed once read, below)
         runs.append((subprocess.Popen(prefix + run_flags, cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=log), log))
     results = [(run.wait(), log) for run, log in runs]
     elapsed = time.perf_counter() - start
@@ -128,22 +128,22 @@ def logged_sps(workdir: str, cumulative: bool = False) -> dict:
     """{window end step: [the steps/s of each run folder under workdir/runs over the 1000 steps before it]}.
 
     Our scripts log charts/SPS per 1000-step window (one folder per seed, each with its process's rate). Other
-    scripts, CleanRL's, log charts/SPS as int(step / seconds since the loop started) (cumulative=True): a window's
-    rate is then 1000 / (t(end) - t(end - 1000)) with t(s) = s / SPS(s), the integer rounding of SPS costing about
-    0.5 / SPS of t (under 1% of a window past 2000 steps)."""
+    scripts, CleanRL's, log charts/SPS since their loop started (cumulative=True): a window's rate is then read
+    from the events' wall-clock times, 1000 / (time(end) - time(end - 1000)), which the integer SPS does not blur."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     windows = {}
     runs_dir = os.path.join(workdir, "runs")
-    for name in sorted(os.listdir(runs_dir)) if os.path.isdir(runs_dir) else []:
-        acc = EventAccumulator(os.path.join(runs_dir, name), size_guidance={"scalars": 0})
+    folders = sorted(root for root, _, files in os.walk(runs_dir) if any(f.startswith("events.out.tfevents") for f in files))
+    for folder in folders:  # nested too: CleanRL names a run after its env id, "/" included
+        acc = EventAccumulator(folder, size_guidance={"scalars": 0})
         acc.Reload()
         events = acc.Scalars("charts/SPS") if "charts/SPS" in acc.Tags()["scalars"] else []
         if not cumulative:
             for event in events:
                 windows.setdefault(event.step + 1, []).append(event.value)
             continue
-        seconds = {e.step: e.step / e.value for e in events if e.step % 1000 == 0 and e.step > 0 and e.value > 0}
+        seconds = {e.step: e.wall_time for e in events if e.step % 1000 == 0}
         for step, t in sorted(seconds.items()):
             if step + 1000 in seconds and seconds[step + 1000] > t:
                 windows.setdefault(step + 1000, []).append(1000 / (seconds[step + 1000] - t))
@@ -152,12 +152,14 @@ def logged_sps(workdir: str, cumulative: bool = False) -> dict:
 
 def window_run(entry: str, args, workdir: str) -> tuple[list, float]:
     """One run of L + T steps; [(window end, steps/s of a process, agent-steps/s of all its seeds)] for the timed
-    windows, and the wall time. A process's seeds all log its rate, so the agent-steps/s are the sum over folders."""
+    windows, and the wall time. A process's seeds all log its rate, so the agent-steps/s are the sum over folders.
+    Our scripts are recognised by their short names (td3, oparl, ...); any other entry is read as CleanRL's."""
     ours = command_of(copies_of(entry)[1])[1]
     rundir = tempfile.mkdtemp(dir=workdir)
-    steps = args.learning_starts + args.steps + (0 if ours else 1)  # CleanRL's loop logs step s only if it runs s + 1 steps
+    # CleanRL's loop logs step s only if it runs s + 1 steps, and only steps after learning starts
+    steps = args.learning_starts + args.steps + (0 if ours else 1)
     took = timed_run(entry, args.env_id, steps, args.learning_starts, args.threads, rundir, args.cuda)
-    first = args.learning_starts + args.warmup  # the first step a timed window may start at
+    first = args.learning_starts + max(args.warmup, 0 if ours else 1)  # the first step a timed window may start at
     timed = []
     for end, values in sorted(logged_sps(rundir, cumulative=not ours).items()):
         if end - 1000 >= first and len(values) == agents_of(entry):
@@ -169,6 +171,7 @@ def window_run(entry: str, args, workdir: str) -> tuple[list, float]:
 
 CSV_FIELDS = [
     "entry",
+    "label",
     "env_id",
     "device",
     "copies",
@@ -195,6 +198,7 @@ def write_rows(path: str, entry: str, args, device: str, rows: list):
             writer.writerow(
                 [
                     entry,
+                    args.label,
                     args.env_id,
                     device,
                     copies,
@@ -243,6 +247,9 @@ def main(argv=None):
     )
     parser.add_argument("--warmup", type=int, default=500, help="with --window: training steps before the first timed window")
     parser.add_argument("--csv", default=None, help="append one row per timed run (--window: per window) to this CSV")
+    parser.add_argument(
+        "--label", default="", help="written in the CSV's label column: what the command line does not say (e.g. mps)"
+    )
     args = parser.parse_args(argv)
     for name, value in [
         ("--steps", args.steps),
