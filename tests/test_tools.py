@@ -362,6 +362,26 @@ def test_welch_averages_a_window_of_evaluations_and_pools_algorithms(tmp_path):
         assert refused.returncode != 0 and refused.stderr.strip().count("\n") == 0 and message in refused.stderr
 
 
+def test_welch_paired_matches_runs_by_seed_and_pooled_arms_by_precedence(tmp_path):
+    from scipy import stats
+
+    path = tmp_path / "final_returns.csv"
+    rows = ["algo,env_id,seed,steps,final_return"]
+    rows += [f"x,cartpole,{seed},1000,{v}" for seed, v in [(1, 10), (2, 20), (3, 35), (10, 50)]]
+    rows += [f"y,cartpole,{seed},1000,{v}" for seed, v in [(1, 8), (2, 21)]]
+    rows += [f"z,cartpole,{seed},1000,{v}" for seed, v in [(1, 100), (3, 30), (4, 99)]]  # seed 1: y's counts (listed first)
+    path.write_text("\n".join(rows) + "\n")
+    result = tool("welch.py", str(path), "x", "y+z", "--paired")
+    assert result.returncode == 0, result.stderr
+    line = next(line for line in result.stdout.splitlines() if line.startswith("| cartpole |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    x, yz = [10, 20, 35], [8, 21, 30]  # seeds 1, 2, 3; seed 10 has no partner, seed 4 no x run
+    assert cells[1] == "3" and cells[4].startswith("+2.0 +- ") and cells[7] == "2/3"
+    assert float(cells[6]) == pytest.approx(stats.ttest_rel(x, yz).pvalue, abs=0.001)
+    refused = tool("welch.py", str(path), "y", "z", "--paired")  # one seed in common
+    assert refused.returncode != 0 and "at least two seeds" in refused.stderr.strip().splitlines()[-1]
+
+
 def test_env_cost_times_each_task_through_the_scripts_environment_layer():
     result = tool("env_cost.py", "Pendulum-v1", "MountainCarContinuous-v0", "--envs", "2", "--steps", "50")
     assert result.returncode == 0, result.stderr

@@ -12,6 +12,12 @@ ties, 9/9 happens one time in twenty for two equal algorithms).
 With an eval_series.csv (plot_results.py's: algo, env_id, seed, step, episodic_return) and --steps LO HI, a
 run's value is the mean of its evaluations from step LO to step HI (both included) instead of its final one.
 With three runs a side the test only sees large differences; a high p-value is no evidence of equality.
+
+With --paired, runs are matched by seed instead (a paired t-test on the differences, seed by seed): for two
+arms whose run k starts from the same draws, as a many-seed process's seed k and the single-seed run k do. A
+pooled 'b+c' then takes each seed from the first of b, c that ran it.
+
+    python tools/welch.py results/many_seeds/final_returns.csv td3_n3 td3+td3_1x --paired
 """
 
 import argparse
@@ -54,6 +60,35 @@ def pool(runs: dict, name: str) -> dict:
     return runs
 
 
+def by_seed(path: str, steps=None) -> dict:
+    """{(algo, env_id): {seed: final return, or the mean of its evaluations with LO <= step <= HI}}."""
+    values = defaultdict(lambda: defaultdict(list))
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            if steps is None:
+                values[row["algo"], row["env_id"]][row["seed"]].append(float(row["final_return"]))
+            elif steps[0] <= int(float(row["step"])) <= steps[1]:
+                values[row["algo"], row["env_id"]][row["seed"]].append(float(row["episodic_return"]))
+    return {key: {seed: float(np.mean(v)) for seed, v in seeds.items()} for key, seeds in values.items()}
+
+
+def paired_table(runs: dict, a: str, b: str) -> list:
+    """One row per task: (env_id, pairs, mean of a, mean of b, mean and std of a - b, t, p, pairs where a is higher)."""
+    rows = []
+    for env_id in sorted({env for algo, env in runs if algo == a}):
+        b_runs = {}
+        for part in reversed(b.split("+")):  # the first part that ran a seed gives it
+            b_runs.update(runs.get((part, env_id), {}))
+        seeds = sorted(set(runs[a, env_id]) & set(b_runs), key=lambda s: (len(s), s))
+        if len(seeds) < 2:
+            continue
+        x, y = np.array([runs[a, env_id][s] for s in seeds]), np.array([b_runs[s] for s in seeds])
+        t, p = stats.ttest_rel(x, y)
+        d = x - y
+        rows.append((env_id, len(seeds), x.mean(), y.mean(), d.mean(), d.std(ddof=1), float(t), float(p), int((d > 0).sum())))
+    return rows
+
+
 def welch_table(runs: dict, a: str, b: str) -> list:
     """One row per task both ran: (env_id, n_a, mean_a, std_a, n_b, mean_b, std_b, t, df, p, above), `above` the
     number of (a run, b run) pairs in which a's run is higher (all n_a * n_b of them: a's every run above b's every one)."""
@@ -78,6 +113,7 @@ def main(argv=None):
     parser.add_argument("a", help="an algorithm as the CSV names it")
     parser.add_argument("b", help="the algorithm it is compared with")
     parser.add_argument("--steps", nargs=2, type=int, metavar=("LO", "HI"), help="with an eval_series.csv: the window")
+    parser.add_argument("--paired", action="store_true", help="match runs by seed: a paired t-test")
     args = parser.parse_args(argv)
     kind = "eval_series.csv" if args.steps else "final_returns.csv"
     if args.steps and args.steps[0] > args.steps[1]:
@@ -93,6 +129,8 @@ def main(argv=None):
             window = " in that --steps window" if args.steps else ""
             sys.exit(f"error: no runs of {missing[0]!r} in {args.final_returns}{window}; it has {', '.join(algos)}")
         pool(runs, name)
+    if args.paired:
+        return print_paired(args, by_seed(args.final_returns, args.steps))
     rows = welch_table(runs, args.a, args.b)
     if not rows:
         sys.exit(f"error: no task with at least two runs of both {args.a!r} and {args.b!r}")
@@ -105,6 +143,19 @@ def main(argv=None):
             f"| {env_id} | {na}, {ma:.1f} +- {sa:.1f} | {nb}, {mb:.1f} +- {sb:.1f} | {ma - mb:+.1f} | {t:.2f} | {df:.1f} | {p:.3f}"
             f" | {above}/{na * nb} |"
         )
+    return rows
+
+
+def print_paired(args, runs: dict) -> list:
+    rows = paired_table(runs, args.a, args.b)
+    if not rows:
+        sys.exit(f"error: no task with at least two seeds that both {args.a!r} and {args.b!r} ran")
+    print(
+        f"| task | seeds | {args.a} mean | {args.b} mean | difference (mean +- std over seeds) | paired t | p | {args.a} higher |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for env_id, n, ma, mb, md, sd, t, p, higher in rows:
+        print(f"| {env_id} | {n} | {ma:.1f} | {mb:.1f} | {md:+.1f} +- {sd:.1f} | {t:.2f} | {p:.3f} | {higher}/{n} |")
     return rows
 
 
