@@ -1,7 +1,8 @@
 """What one environment step costs on this CPU, through a script's own environment layer (make_env and its
-wrappers), stepped as a many-seed process steps its environments: one after another, random actions.
+wrappers), stepped as a many-seed process steps its environments: one after another, with random actions drawn
+beforehand.
 
-    python tools/env_cost.py dm_control/cartpole-swingup-v0 dm_control/walker-walk-v0 --envs 16 --steps 300
+    python tools/env_cost.py dm_control/cartpole-swingup-v0 dm_control/walker-walk-v0 --envs 16 --steps 1000
 
 A process training N seeds spends about N times this per training step on the CPU before any network runs,
 which bounds its steps/s however fast the GPU is (docs/speed.md, "On one GPU").
@@ -25,13 +26,15 @@ def load(script: str):
 def step_cost(make_env, env_id: str, num_envs: int, steps: int) -> float:
     """Seconds per environment step, resets included, over steps x num_envs steps."""
     envs = [make_env(env_id, seed) for seed in range(num_envs)]
+    actions = []  # drawn before the clock starts: a training step's actions come from the actor, not the action space
     for k, env in enumerate(envs):
         env.reset(seed=k)
         env.action_space.seed(k)
+        actions.append([env.action_space.sample() for _ in range(steps)])
     start = time.perf_counter()
-    for _ in range(steps):
-        for env in envs:
-            _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+    for i in range(steps):
+        for env, env_actions in zip(envs, actions):
+            _, _, terminated, truncated, _ = env.step(env_actions[i])
             if terminated or truncated:
                 env.reset()
     took = time.perf_counter() - start
@@ -44,7 +47,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("env_ids", nargs="+")
     parser.add_argument("--envs", type=int, default=16, help="environments stepped one after another")
-    parser.add_argument("--steps", type=int, default=300, help="steps of each environment")
+    parser.add_argument("--steps", type=int, default=1000, help="steps of each environment")
     parser.add_argument("--script", default="td3", help="whose make_env (all off-policy scripts share one layer)")
     args = parser.parse_args(argv)
     if args.envs <= 0 or args.steps <= 0:

@@ -9,7 +9,7 @@
 #     BUDGET=540 bash tools/gpu_seed_scaling.sh [FIRST_STEP]
 # BUDGET: seconds; a step that would not fit is skipped and named in $OUT/log.txt. Needs CUDA, MPS (nvidia-cuda-mps-control) and the NumPy that
 # requirements.txt pins: carry its wheel (docs/sweeps.md, "One GPU"); under NumPy 2.5 dm-control writes a
-# DeprecationWarning at every environment step (about 8 us each and megabytes of log).
+# DeprecationWarning at every environment step (a few us each and megabytes of log).
 set -u
 OUT=${OUT:-gpu_out}
 BUDGET=${BUDGET:-540}
