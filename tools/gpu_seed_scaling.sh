@@ -11,26 +11,8 @@
 # requirements.txt pins: carry its wheel (docs/sweeps.md, "One GPU"); under NumPy 2.5 dm-control writes a
 # DeprecationWarning at every environment step (a few us each and megabytes of log).
 set -u
-OUT=${OUT:-gpu_out}
-BUDGET=${BUDGET:-540}
-FIRST=${1:-1}
-mkdir -p "$OUT"
-LOG=$OUT/log.txt
+source "$(dirname "$0")/gpu_common.sh"   # OUT, BUDGET, FIRST_STEP, LOG, step, $OUT/machine.txt
 CSV=$OUT/scaling.csv
-export PYTHONUNBUFFERED=1
-n=0
-step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budget, within what is left
-    n=$((n + 1))
-    local need=$1
-    shift
-    if ((n < FIRST)); then return; fi
-    if ((SECONDS + need > BUDGET)); then
-        echo "step $n skipped (needs ~${need} s, $((BUDGET - SECONDS)) s left): $1" | tee -a "$LOG"
-        return
-    fi
-    echo "== step $n at ${SECONDS} s: $1" | tee -a "$LOG"
-    timeout $((BUDGET - SECONDS)) bash -c "$1" >>"$LOG" 2>&1 || echo "step $n failed ($?): $1" | tee -a "$LOG"
-}
 time_it() { # time_it ENV_ID ENTRY [STEPS]: one run of the entry (500 random steps, then STEPS), its windows appended to the CSV
     local mps=mps=off
     pgrep -x nvidia-cuda-mps >/dev/null && mps=mps=on
@@ -49,15 +31,6 @@ export -f time_it mps
 export CSV
 E=${E:-dm_control/cartpole-swingup-v0}
 G=${G---cudagraphs}
-
-{
-    nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
-    python -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
-    grep -m1 "model name" /proc/cpuinfo
-    nproc
-    pin=$(sed -n 's/^numpy==//p' requirements.txt)
-    python -c "import numpy, sys; v = numpy.__version__; print('numpy', v, '' if v == sys.argv[1] else '(requirements.txt pins ' + sys.argv[1] + ')')" "$pin"
-} >"$OUT/machine.txt" 2>&1
 
 step 15 "python tools/env_cost.py $E dm_control/walker-walk-v0 > $OUT/env_cost.md"
 step 60 "python -m pytest tests/test_cudagraphs.py -q -x -p no:cacheprovider -k 'syncs and 3]'"

@@ -13,27 +13,10 @@
 # .git/info/exclude and carry it); without it only our scripts are timed. The profiles need py-spy: carry its
 # wheel in .whl/ (the install puts its binary in /tmp/site/bin); without it they are skipped.
 set -u
-OUT=${OUT:-gpu_out}
-BUDGET=${BUDGET:-540}
-FIRST=${1:-1}
+source "$(dirname "$0")/gpu_common.sh"   # OUT, BUDGET, FIRST_STEP, LOG, step, $OUT/machine.txt
 CLEANRL=$(cd "${CLEANRL:-.cleanrl}" 2>/dev/null && pwd)
-mkdir -p "$OUT"
-LOG=$OUT/log.txt
-export PATH=$PATH:/tmp/site/bin CSV=$OUT/speed.csv PYTHONUNBUFFERED=1 PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$CLEANRL
+export PATH=$PATH:/tmp/site/bin CSV=$OUT/speed.csv PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$CLEANRL
 export CLEANRL C=$CLEANRL/cleanrl
-n=0
-step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budget, within what is left
-    n=$((n + 1))
-    local need=$1
-    shift
-    if ((n < FIRST)); then return; fi
-    if ((SECONDS + need > BUDGET)); then
-        echo "step $n skipped (needs ~${need} s, $((BUDGET - SECONDS)) s left): $1" | tee -a "$LOG"
-        return
-    fi
-    echo "== step $n at ${SECONDS} s: $1" | tee -a "$LOG"
-    timeout $((BUDGET - SECONDS)) bash -c "$1" >>"$LOG" 2>&1 || echo "step $n failed ($?): $1" | tee -a "$LOG"
-}
 speed() { # speed ENV_ID REPEATS [cleanrl]: every entry once per repeat, interleaved; one 1000-step window per run
     local entries=("td3 --cudagraphs" "oparl --cudagraphs" "sac --cudagraphs" "redq --cudagraphs")
     if [ "${3:-}" = cleanrl ] && [ -n "$CLEANRL" ]; then
@@ -51,15 +34,6 @@ profile() { # profile SCRIPT ENV_ID: py-spy's share of the run's time by phase
         --eval-frequency 1000000000 --eval-episodes 1
 }
 export -f speed profile
-
-{
-    nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
-    python -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
-    grep -m1 "model name" /proc/cpuinfo
-    nproc
-    pin=$(sed -n 's/^numpy==//p' requirements.txt)
-    python -c "import numpy, sys; v = numpy.__version__; print('numpy', v, '' if v == sys.argv[1] else '(requirements.txt pins ' + sys.argv[1] + ')')" "$pin"
-} >"$OUT/machine.txt" 2>&1
 
 [ -n "$CLEANRL" ] || echo "no CleanRL folder (CLEANRL=${CLEANRL:-.cleanrl}): our scripts only" | tee -a "$LOG"
 step 480 "speed Hopper-v4 3 cleanrl"

@@ -29,28 +29,6 @@ import numpy as np
 from scipy import stats
 
 
-def finals(path: str) -> dict:
-    """{(algo, env_id): [final return of each run]}."""
-    runs = defaultdict(list)
-    with open(path, newline="") as f:
-        for row in csv.DictReader(f):
-            runs[row["algo"], row["env_id"]].append(float(row["final_return"]))
-    return runs
-
-
-def window_means(path: str, low: int, high: int) -> dict:
-    """{(algo, env_id): [each run's mean evaluation with low <= step <= high]}; runs without one are left out."""
-    windows = defaultdict(list)
-    with open(path, newline="") as f:
-        for row in csv.DictReader(f):
-            if low <= int(float(row["step"])) <= high:
-                windows[row["algo"], row["env_id"], row["seed"]].append(float(row["episodic_return"]))
-    runs = defaultdict(list)
-    for (algo, env_id, _), returns in sorted(windows.items()):
-        runs[algo, env_id].append(float(np.mean(returns)))
-    return runs
-
-
 def pool(runs: dict, name: str) -> dict:
     """Adds the algorithm `name`, 'a+b' for the runs of a and b together, task by task."""
     parts = name.split("+")
@@ -119,9 +97,10 @@ def main(argv=None):
     if args.steps and args.steps[0] > args.steps[1]:
         sys.exit(f"error: --steps {args.steps[0]} {args.steps[1]}: LO is above HI")
     try:
-        runs = window_means(args.final_returns, *args.steps) if args.steps else finals(args.final_returns)
+        seeds = by_seed(args.final_returns, args.steps)  # one value per run: its final return or its window's mean
     except (OSError, KeyError, ValueError) as e:
         sys.exit(f"error: {args.final_returns} is not a readable {kind} ({type(e).__name__}: {e})")
+    runs = {key: list(values.values()) for key, values in seeds.items()}
     algos = sorted({algo for algo, _ in runs})
     for name in (args.a, args.b):
         missing = [part for part in name.split("+") if part not in algos]
@@ -130,7 +109,7 @@ def main(argv=None):
             sys.exit(f"error: no runs of {missing[0]!r} in {args.final_returns}{window}; it has {', '.join(algos)}")
         pool(runs, name)
     if args.paired:
-        return print_paired(args, by_seed(args.final_returns, args.steps))
+        return print_paired(args, seeds)
     rows = welch_table(runs, args.a, args.b)
     if not rows:
         sys.exit(f"error: no task with at least two runs of both {args.a!r} and {args.b!r}")
