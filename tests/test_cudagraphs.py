@@ -3,12 +3,14 @@
 The tests that need a GPU skip on a machine without CUDA (CI has none); run them on one with
 `python -m pytest tests/test_cudagraphs.py tests/test_reliability.py -k cudagraphs`."""
 
+import os
 import subprocess
+import sys
 
 import pytest
 import torch
 
-from conftest import OFF_POLICY, cli_flags, critic_lr_flag, load, needs_cuda, scalars, script_command, small_args
+from conftest import OFF_POLICY, REPO, cli_flags, critic_lr_flag, load, needs_cuda, scalars, script_command, small_args
 
 LOSSES = ["losses/qf_loss", "losses/qf_values"]
 # (script, seeds in the process): REDQ trains one seed per process (its command line refuses more)
@@ -102,6 +104,20 @@ def test_non_finite_loss_under_graphs_stops_at_a_logging_step(script, tmp_path):
     assert result.returncode == 1
     line = result.stderr.strip().splitlines()[-1]
     assert line.startswith("error: ") and "became non-finite by step" in line and "--cudagraphs checks every 100 steps" in line
+
+
+@needs_cuda
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_phase_times_charges_the_recorded_update_to_its_replay(script, tmp_path):
+    """tools/phase_times.py under --cudagraphs: after warm-up every update is a replay (no eager critic update is
+    timed), and the synchronising timers leave the recording intact (the run ends and reports)."""
+    flags = cli_flags(script, total_timesteps=600, learning_starts=100, batch_size=32, eval_frequency=600, eval_episodes=1)
+    tool = [sys.executable, os.path.join(REPO, "tools", "phase_times.py"), script, "--env-id", "Pendulum-v1", *flags]
+    result = subprocess.run([*tool, "--cudagraphs", "--warmup-updates", "20"], cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    summary = next(line for line in result.stdout.splitlines() if "training steps timed on" in line)
+    assert "480 training steps timed on" in summary and "timed on cpu" not in summary
+    assert "| update: graph replay and input copies |" in result.stdout and "| update: critic |" not in result.stdout
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")

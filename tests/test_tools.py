@@ -1,6 +1,7 @@
 """The measuring tools run and report what they say, on tiny settings."""
 
 import csv
+import functools
 import os
 import shutil
 import subprocess
@@ -208,6 +209,91 @@ def test_profile_run_attributes_samples_to_phases():
         pytest.skip(f"py-spy may not sample here: {result.stderr.strip()}")
     assert result.returncode == 0, result.stderr
     assert "| critic update (forward, backward, Adam) |" in result.stdout and "| TD target |" in result.stdout
+
+
+def load_phase_times():
+    sys.path.insert(0, os.path.join(REPO, "tools"))
+    try:
+        import phase_times
+    finally:
+        sys.path.pop(0)
+    return phase_times
+
+
+def test_phase_timer_charges_each_phase_its_own_time(monkeypatch):
+    """Exclusive rows: an outer phase is charged its time minus its timed inner calls'; evaluation is charged
+    whole (the environment steps inside it are not split out); the device is synchronised at every boundary."""
+    phase_times = load_phase_times()
+    now = [0.0]
+    monkeypatch.setattr(phase_times.time, "perf_counter", lambda: now[0])
+    syncs = []
+    timer = phase_times.PhaseTimer(lambda: syncs.append(now[0]))
+
+    def advance(seconds):
+        now[0] += seconds
+
+    env_step = timer.wrap("environment step", lambda: advance(5.0))
+    critic = timer.wrap("update: critic", lambda: advance(3.0))
+    evaluation = timer.wrap("evaluation", lambda: [env_step() for _ in range(2)])
+
+    @functools.partial(timer.wrap, "update: graph replay and input copies")
+    def replay():
+        advance(2.0)
+        critic()
+        advance(1.0)
+
+    replay()
+    env_step()
+    evaluation()
+    assert dict(timer.seconds) == {
+        "update: graph replay and input copies": 3.0,
+        "update: critic": 3.0,
+        "environment step": 5.0,
+        "evaluation": 10.0,
+    }
+    assert dict(timer.calls) == {
+        "update: graph replay and input copies": 1,
+        "update: critic": 1,
+        "environment step": 1,
+        "evaluation": 1,
+    }
+    assert syncs == [0.0, 2.0, 5.0, 6.0, 6.0, 11.0, 11.0, 21.0] and timer.syncs == 8
+
+
+def test_phase_times_table_of_a_real_run(tmp_path):
+    """A real run, 2 seeds: every phase of the loop in the loop's order, one sample and two environment steps
+    (one per seed) a training step, the actor every second step, rows that add up to the loop's time."""
+    out = tmp_path / "phases.csv"
+    flags = ["--env-id", "Pendulum-v1", "--learning-starts", "100", "--total-timesteps", "400", "--batch-size", "32"]
+    result = tool("phase_times.py", "td3", *flags, "--num-seeds", "2", "--warmup-updates", "50", "--csv", str(out))
+    assert result.returncode == 0, result.stderr
+    assert "250 training steps timed on cpu" in result.stdout
+    with open(out) as f:
+        rows = list(csv.DictReader(f))
+    phases = [row["phase"] for row in rows]
+    assert phases[:5] == ["acting", "environment step", "environment reset", "storing the transition", "replay sampling"]
+    assert phases[-1] == "rest of the loop" and "update: critic" in phases and "evaluation" not in phases
+    calls = {row["phase"]: float(row["calls_per_step"]) for row in rows}
+    assert calls["replay sampling"] == 1 and calls["environment step"] == 2 and calls["update: actor(s)"] == 0.5
+    assert abs(sum(float(row["share"]) for row in rows) - 100) < 0.1 and float(rows[-1]["ms_per_step"]) >= 0
+    assert {row["script"] for row in rows} == {"td3"} and all(row["timed_steps"] == "250" for row in rows)
+
+
+@pytest.mark.parametrize(
+    "flags,error",
+    [
+        (["ppo"], "error: usage: python tools/phase_times.py {td3,sac,oparl,redq}"),
+        (["td3", "--warmup-updates", "-1"], "error: --warmup-updates must be an integer >= 0, got -1"),
+        (["td3", "--csv"], "error: --csv needs a value"),
+        (
+            ["td3", "--env-id", "Pendulum-v1", "--total-timesteps", "300", "--learning-starts", "100", "--batch-size", "32"],
+            "error: no training step",
+        ),
+    ],
+)
+def test_phase_times_bad_input_is_one_line(flags, error):
+    result = tool("phase_times.py", *flags)
+    assert result.returncode != 0 and result.stderr.strip().splitlines()[-1].startswith(error), result.stderr
 
 
 def test_memory_tool_reports_checkpoint_cost_and_resident_memory():

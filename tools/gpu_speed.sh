@@ -1,21 +1,21 @@
 #!/usr/bin/env bash
 # One-seed GPU speed beside CleanRL (docs/speed.md, "GPU: --cudagraphs"): CleanRL's TD3 and SAC and our td3, sac,
 # oparl and redq --cudagraphs on Hopper-v4, 3 repeats interleaved, each run timed by tools/throughput.py --window
-# (one process start per run; CleanRL's cumulative charts/SPS is read by its events' times), then py-spy profiles
-# of td3 --cudagraphs and oparl --cudagraphs (where the host's time goes), then ours on cartpole-swingup (CleanRL's
-# scripts do not run DeepMind Control tasks). Results go to $OUT (on the device machine, the folder that comes
-# back; default here: gpu_out) in order of priority within a budget. The first step needs about 480 s, so the
-# profiles and the second task need a second call from FIRST_STEP 2:
+# (one process start per run; CleanRL's cumulative charts/SPS is read by its events' times), then where a step's
+# time goes in td3, oparl and redq --cudagraphs (tools/phase_times.py: each phase timed with the GPU
+# synchronised at its start and end, so a graph's replay is charged its kernels), then ours on cartpole-swingup
+# (CleanRL's scripts do not run DeepMind Control tasks). Results go to $OUT (on the device machine, the folder that
+# comes back; default here: gpu_out) in order of priority within a budget: speed.csv, phases.csv, log.txt. The first
+# step needs about 480 s, so the rest needs a second call from FIRST_STEP 2:
 #     BUDGET=540 bash tools/gpu_speed.sh [FIRST_STEP]
 # CLEANRL (default .cleanrl): a folder holding CleanRL's cleanrl/{td3,sac}_continuous_action.py and cleanrl_utils/
 # at the commit docs/speed.md names, e.g. `mkdir .cleanrl && git -C ../cleanrl archive fe8d8a0
 # cleanrl/td3_continuous_action.py cleanrl/sac_continuous_action.py cleanrl_utils | tar -x -C .cleanrl` (list it in
-# .git/info/exclude and carry it); without it only our scripts are timed. The profiles need py-spy: carry its
-# wheel in .whl/ (the install puts its binary in /tmp/site/bin); without it they are skipped.
+# .git/info/exclude and carry it); without it only our scripts are timed.
 set -u
 source "$(dirname "$0")/gpu_common.sh"   # OUT, BUDGET, FIRST_STEP, LOG, step, $OUT/machine.txt
 CLEANRL=$(cd "${CLEANRL:-.cleanrl}" 2>/dev/null && pwd)
-export PATH=$PATH:/tmp/site/bin CSV=$OUT/speed.csv PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$CLEANRL
+export CSV=$OUT/speed.csv PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$CLEANRL
 export CLEANRL C=$CLEANRL/cleanrl
 speed() { # speed ENV_ID REPEATS [cleanrl]: every entry once per repeat, interleaved; one 1000-step window per run
     local entries=("td3 --cudagraphs" "oparl --cudagraphs" "sac --cudagraphs" "redq --cudagraphs")
@@ -25,19 +25,16 @@ speed() { # speed ENV_ID REPEATS [cleanrl]: every entry once per repeat, interle
     python tools/throughput.py "${entries[@]}" --env-id "$1" --cuda --window --learning-starts 500 --steps 1500 \
         --repeats "$2" --csv "$CSV"
 }
-profile() { # profile SCRIPT ENV_ID: py-spy's share of the run's time by phase
-    if ! command -v py-spy >/dev/null; then
-        echo "no py-spy: profile skipped"
-        return 0
-    fi
-    python tools/profile_run.py "$1" --env-id "$2" --cudagraphs --learning-starts 500 --total-timesteps 4000 \
-        --eval-frequency 1000000000 --eval-episodes 1
+phases() { # phases SCRIPT ENV_ID [STEPS]: ms per training step by phase, after 500 random and 300 warm-up training steps
+    python tools/phase_times.py "$1" --env-id "$2" --cudagraphs --learning-starts 500 --total-timesteps "${3:-3000}" \
+        --eval-frequency 1000000000 --eval-episodes 1 --warmup-updates 300 --csv "$OUT/phases.csv"
 }
-export -f speed profile
+export -f speed phases
 
 [ -n "$CLEANRL" ] || echo "no CleanRL folder (CLEANRL=${CLEANRL:-.cleanrl}): our scripts only" | tee -a "$LOG"
 step 480 "speed Hopper-v4 3 cleanrl"
-step 60 "profile td3 Hopper-v4 > $OUT/profile_td3.txt"
-step 60 "profile oparl Hopper-v4 > $OUT/profile_oparl.txt"
+step 30 "phases td3 Hopper-v4"
+step 30 "phases oparl Hopper-v4"
+step 40 "phases redq Hopper-v4 1500"
 step 240 "speed dm_control/cartpole-swingup-v0 3"
 echo "done at ${SECONDS} s" | tee -a "$LOG"
