@@ -2,11 +2,13 @@
 
 import csv
 import functools
+import importlib
 import os
 import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from conftest import REPO
@@ -16,6 +18,14 @@ def tool(name, *flags, timeout=600):
     return subprocess.run(
         [sys.executable, os.path.join(REPO, "tools", name), *flags], capture_output=True, text=True, timeout=timeout
     )
+
+
+def load_tool(name: str):
+    sys.path.insert(0, os.path.join(REPO, "tools"))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.pop(0)
 
 
 def test_throughput_reports_a_median_table_with_ratios():
@@ -142,6 +152,7 @@ def test_throughput_window_reads_the_logged_rate_of_each_timed_window(tmp_path):
     with open(out) as f:
         rows = list(csv.DictReader(f))
     assert [row["window_end"] for row in rows] == ["2000"]  # [1000, 2000): the only window from step 200 on
+    assert list(rows[0]) == load_tool("throughput").CSV_FIELDS and rows[0]["repeat"] == "1"
     assert rows[0]["seeds_per_copy"] == "2" and rows[0]["copies"] == "1"
     assert float(rows[0]["agent_steps_per_s"]) == pytest.approx(2 * float(rows[0]["steps_per_s"]), abs=0.1)
     result = tool("throughput.py", "td3", "--window", "--learning-starts", "100", "--steps", "1000")
@@ -172,6 +183,22 @@ def test_throughput_window_reads_a_cumulative_rate_as_cleanrl_logs_it(tmp_path):
         rows = {row["window_end"]: (float(row["steps_per_s"]), row["label"]) for row in csv.DictReader(f)}
     # [1000, 2000) is not timed: CleanRL logs no step 1000 when learning starts there
     assert rows == {"3000": (pytest.approx(250), "fake"), "4000": (pytest.approx(250), "fake")}
+
+
+def test_throughput_times_the_windows_from_the_first_step_that_every_seed_logged():
+    throughput = load_tool("throughput")
+    windows = {1000: [50.0, 70.0], 2000: [40.0, 60.0], 3000: [30.0], 4000: [20.0, 20.0]}  # 3000: one seed's only
+    assert throughput.timed_windows(windows, 1000, 2) == [(2000, 50.0, 100.0), (4000, 20.0, 40.0)]  # from [1000, 2000)
+    assert throughput.timed_windows(windows, 999, 2)[0] == (2000, 50.0, 100.0)  # [0, 1000) starts before step 999
+    assert throughput.timed_windows(windows, 0, 2)[0] == (1000, 60.0, 120.0)
+    assert throughput.timed_windows(windows, 1001, 1) == [(3000, 30.0, 30.0)]
+
+
+def test_throughput_summary_is_the_median_with_its_range_and_ratio():
+    throughput = load_tool("throughput")
+    rows = throughput.summary({"td3": [1.0, 2.0, 30.0], "oparl --num-seeds 4": [4.0, 1.0, 5.0, 6.0]}, "td3")
+    assert rows[0] == ("td3", 2.0, 1.0, 30.0, 1.0, 2.0)
+    assert rows[1] == ("oparl --num-seeds 4", 4.5, 1.0, 6.0, 2.25, 18.0)
 
 
 def test_throughput_refuses_bad_settings():
@@ -211,19 +238,10 @@ def test_profile_run_attributes_samples_to_phases():
     assert "| critic update (forward, backward, Adam) |" in result.stdout and "| TD target |" in result.stdout
 
 
-def load_phase_times():
-    sys.path.insert(0, os.path.join(REPO, "tools"))
-    try:
-        import phase_times
-    finally:
-        sys.path.pop(0)
-    return phase_times
-
-
 def test_phase_timer_charges_each_phase_its_own_time(monkeypatch):
     """Exclusive rows: an outer phase is charged its time minus its timed inner calls'; evaluation is charged
     whole (the environment steps inside it are not split out); the device is synchronised at every boundary."""
-    phase_times = load_phase_times()
+    phase_times = load_tool("phase_times")
     now = [0.0]
     monkeypatch.setattr(phase_times.time, "perf_counter", lambda: now[0])
     syncs = []
@@ -418,6 +436,8 @@ def test_welch_compares_final_returns_task_by_task(tmp_path):
     assert cells[1] == "3, 113.3 +- 15.3" and cells[3] == "+59.0"
     assert float(cells[4]) == pytest.approx(expected.statistic, abs=0.01)
     assert float(cells[6]) == pytest.approx(expected.pvalue, abs=0.001)
+    va, vb = np.var(a, ddof=1) / 3, np.var(b, ddof=1) / 3
+    assert float(cells[5]) == pytest.approx((va + vb) ** 2 / (va**2 / 2 + vb**2 / 2), abs=0.05)  # Welch-Satterthwaite
     assert cells[7] == "9/9"  # every run of x above every run of y
     overlap = next(line for line in result.stdout.splitlines() if line.startswith("| overlap |"))
     assert overlap.strip("|").split("|")[7].strip() == "4/9"  # 5 > 2, 9 > 2, 5, 8; the tie 5 = 5 counts for neither
@@ -431,16 +451,17 @@ def test_welch_averages_a_window_of_evaluations_and_pools_algorithms(tmp_path):
 
     path = tmp_path / "eval_series.csv"
     rows = ["algo,env_id,seed,step,episodic_return"]
-    curves = {("x", 1): [0, 10, 30], ("x", 2): [0, 20, 60], ("y", 1): [0, 1, 3], ("y", 2): [5, 2, 4], ("z", 1): [0, 7, 9]}
+    curves = {("x", 1): [0, 10, 20, 60], ("x", 2): [0, 20, 40, 60], ("y", 1): [0, 1, 2, 3], ("y", 2): [5, 2, 2, 5]}
+    curves["z", 1] = [0, 0, 0, 24]  # means of the window: x 30, 40; y 2, 3; z 8 (medians: x 20, y 2, z 0)
     for (algo, seed), returns in curves.items():
-        rows += [f"{algo},cartpole,{seed},{step},{r}" for step, r in zip((0, 500, 1000), returns)]
+        rows += [f"{algo},cartpole,{seed},{step},{r}" for step, r in zip((0, 500, 750, 1000), returns)]
     path.write_text("\n".join(rows) + "\n")
     result = tool("welch.py", str(path), "x", "y+z", "--steps", "500", "1000")
     assert result.returncode == 0, result.stderr
-    x, yz = [20.0, 40.0], [2.0, 3.0, 8.0]  # each run's mean over steps 500 and 1000; y and z's runs together
+    x, yz = [30.0, 40.0], [2.0, 3.0, 8.0]  # each run's mean over steps 500-1000; y and z's runs together
     line = next(line for line in result.stdout.splitlines() if line.startswith("| cartpole |"))
     cells = [c.strip() for c in line.strip("|").split("|")]
-    assert cells[1] == "2, 30.0 +- 14.1" and cells[2].startswith("3, 4.3 +- ")
+    assert cells[1] == "2, 35.0 +- 7.1" and cells[2] == "3, 4.3 +- 3.2"
     assert float(cells[6]) == pytest.approx(stats.ttest_ind(x, yz, equal_var=False).pvalue, abs=0.001)
     assert cells[7] == "6/6"
     for bad, message in [(("1000", "500"), "LO is above HI"), (("2000", "3000"), "no runs of 'x'")]:
@@ -453,19 +474,72 @@ def test_welch_paired_matches_runs_by_seed_and_pooled_arms_by_precedence(tmp_pat
 
     path = tmp_path / "final_returns.csv"
     rows = ["algo,env_id,seed,steps,final_return"]
-    rows += [f"x,cartpole,{seed},1000,{v}" for seed, v in [(1, 10), (2, 20), (3, 35), (10, 50)]]
-    rows += [f"y,cartpole,{seed},1000,{v}" for seed, v in [(1, 8), (2, 21)]]
+    rows += [f"x,cartpole,{seed},1000,{v}" for seed, v in [(1, 10), (2, 20), (3, 35), (5, 40), (10, 50)]]
+    rows += [f"y,cartpole,{seed},1000,{v}" for seed, v in [(1, 8), (2, 21), (5, 40)]]  # seed 5: a tie
     rows += [f"z,cartpole,{seed},1000,{v}" for seed, v in [(1, 100), (3, 30), (4, 99)]]  # seed 1: y's counts (listed first)
     path.write_text("\n".join(rows) + "\n")
     result = tool("welch.py", str(path), "x", "y+z", "--paired")
     assert result.returncode == 0, result.stderr
     line = next(line for line in result.stdout.splitlines() if line.startswith("| cartpole |"))
     cells = [c.strip() for c in line.strip("|").split("|")]
-    x, yz = [10, 20, 35], [8, 21, 30]  # seeds 1, 2, 3; seed 10 has no partner, seed 4 no x run
-    assert cells[1] == "3" and cells[4].startswith("+2.0 +- ") and cells[7] == "2/3"
+    x, yz = [10, 20, 35, 40], [8, 21, 30, 40]  # seeds 1, 2, 3, 5; seed 10 has no partner, seed 4 no x run
+    assert cells[1] == "4" and cells[4] == "+1.5 +- 2.6" and cells[7] == "2/4"  # d = 2, -1, 5, 0: sample SD; a tie: neither
     assert float(cells[6]) == pytest.approx(stats.ttest_rel(x, yz).pvalue, abs=0.001)
     refused = tool("welch.py", str(path), "y", "z", "--paired")  # one seed in common
     assert refused.returncode != 0 and "at least two seeds" in refused.stderr.strip().splitlines()[-1]
+
+
+class CountingEnv:
+    """A stand-in for make_env's environment: its episodes end every 7 steps; it logs its steps, resets and draws."""
+
+    def __init__(self, log: list):
+        self.log, self.t = log, 0
+        env = self
+
+        class Space:
+            def seed(self, seed):
+                pass
+
+            def sample(self):
+                env.log.append("sample")
+                return 0.0
+
+        self.action_space = Space()
+
+    def reset(self, seed=None):
+        self.log.append("reset")
+        self.t = 0
+        return 0.0, {}
+
+    def step(self, action):
+        self.log.append("step")
+        self.t += 1
+        return 0.0, 0.0, self.t == 7, False, {}
+
+    def close(self):
+        pass
+
+
+def test_env_cost_steps_every_environment_with_actions_drawn_before_the_clock(monkeypatch):
+    env_cost = load_tool("env_cost")
+    log, built = [], []
+
+    def make_env(env_id, seed):
+        built.append((env_id, seed))
+        return CountingEnv(log)
+
+    clock = iter([10.0, 13.0])
+    monkeypatch.setattr(env_cost.time, "perf_counter", lambda: log.append("clock") or next(clock))
+    cost = env_cost.step_cost(make_env, "Fake-v0", num_envs=3, steps=20)
+    assert cost == pytest.approx(3.0 / 60) and built == [("Fake-v0", 0), ("Fake-v0", 1), ("Fake-v0", 2)]
+    assert log.count("step") == 60 and log.count("sample") == 60
+    assert log.count("reset") == 3 + 3 * 2  # each env's first, then after its steps 7 and 14
+    assert max(i for i, e in enumerate(log) if e == "sample") < log.index("clock") < log.index("step")  # no draw timed
+    loaded = []
+    monkeypatch.setattr(env_cost, "load", lambda script: loaded.append(script) or type("M", (), {"make_env": make_env}))
+    monkeypatch.setattr(env_cost.time, "perf_counter", lambda: 0.0)
+    env_cost.main(["Fake-v0", "--script", "sac", "--envs", "1", "--steps", "1"])
+    assert loaded == ["sac"]
 
 
 def test_env_cost_times_each_task_through_the_scripts_environment_layer():

@@ -159,14 +159,30 @@ def window_run(entry: str, args, workdir: str) -> tuple[list, float]:
     # CleanRL's loop logs step s only if it runs s + 1 steps, and only steps after learning starts
     steps = args.learning_starts + args.steps + (0 if ours else 1)
     took = timed_run(entry, args.env_id, steps, args.learning_starts, args.threads, rundir, args.cuda)
-    first = args.learning_starts + max(args.warmup, 0 if ours else 1)  # the first step a timed window may start at
-    timed = []
-    for end, values in sorted(logged_sps(rundir, cumulative=not ours).items()):
-        if end - 1000 >= first and len(values) == agents_of(entry):
-            timed.append((end, statistics.mean(values), sum(values)))
+    timed = timed_windows(logged_sps(rundir, cumulative=not ours), args.learning_starts + args.warmup, agents_of(entry))
     if not timed:
         sys.exit(f"error: {entry!r} logged no timed window of charts/SPS (see --window's help)")
     return timed, took
+
+
+def timed_windows(windows: dict, first: int, seeds: int) -> list:
+    """[(window end, steps/s of the process, agent-steps/s of all its seeds)] of the windows {end: [steps/s of each
+    seed's folder]} that start at step `first` or later and that every one of the process's seeds logged."""
+    timed = []
+    for end, values in sorted(windows.items()):
+        if end - 1000 >= first and len(values) == seeds:
+            timed.append((end, statistics.mean(values), sum(values)))
+    return timed
+
+
+def summary(sps: dict, baseline: str) -> list:
+    """[(entry, median steps/s, lowest, highest, median / the baseline's median, median agent-steps/s)]."""
+    reference = statistics.median(sps[baseline])
+    rows = []
+    for entry, values in sps.items():
+        median = statistics.median(values)
+        rows.append((entry, median, min(values), max(values), median / reference, median * agents_of(entry)))
+    return rows
 
 
 CSV_FIELDS = [
@@ -314,7 +330,6 @@ def main(argv=None):
                 if args.csv:
                     write_rows(args.csv, entry, args, device, rows)
 
-    reference = statistics.median(sps[baseline])
     how = (
         f"median of the 1000-step windows from step {first_window} on, {args.repeats} run(s) each"
         if args.window
@@ -325,10 +340,8 @@ def main(argv=None):
     )
     print(f"| entry | steps/s (median) | range | vs `{baseline}` | agent-steps/s (steps/s x seeds at once) |")
     print("|---|---|---|---|---|")
-    for entry, values in sps.items():
-        median = statistics.median(values)
-        agents = f"{median * agents_of(entry):.1f}"
-        print(f"| `{entry}` | {median:.1f} | {min(values):.1f}-{max(values):.1f} | {median / reference:.2f}x | {agents} |")
+    for entry, median, lowest, highest, ratio, agents in summary(sps, baseline):
+        print(f"| `{entry}` | {median:.1f} | {lowest:.1f}-{highest:.1f} | {ratio:.2f}x | {agents:.1f} |")
 
 
 if __name__ == "__main__":
