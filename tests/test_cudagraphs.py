@@ -117,6 +117,8 @@ def test_phase_times_charges_the_recorded_update_to_its_replay(script, tmp_path)
     assert result.returncode == 0, result.stderr
     summary = next(line for line in result.stdout.splitlines() if "training steps timed on" in line)
     assert "480 training steps timed on" in summary and "timed on cpu" not in summary
+    syncs = next(line for line in result.stdout.splitlines() if line.startswith("(synchronised at every phase's"))
+    assert float(syncs.split(": ")[1].split()[0]) >= 8  # acting, env, store, sample, replay: a start and an end each
     assert "| update: graph replay and input copies |" in result.stdout and "| update: critic |" not in result.stdout
 
 

@@ -245,7 +245,7 @@ def test_phase_timer_charges_each_phase_its_own_time(monkeypatch):
     now = [0.0]
     monkeypatch.setattr(phase_times.time, "perf_counter", lambda: now[0])
     syncs = []
-    timer = phase_times.PhaseTimer(lambda: syncs.append(now[0]))
+    timer = phase_times.PhaseTimer(lambda: syncs.append(now[0]) or True)
 
     def advance(seconds):
         now[0] += seconds
@@ -279,22 +279,28 @@ def test_phase_timer_charges_each_phase_its_own_time(monkeypatch):
 
 
 def test_phase_times_table_of_a_real_run(tmp_path):
-    """A real run, 2 seeds: every phase of the loop in the loop's order, one sample and two environment steps
-    (one per seed) a training step, the actor every second step, rows that add up to the loop's time."""
+    """A real run, 2 seeds: every phase of the loop in the loop's order, one action, sample and stored transition
+    and two environment steps (one per seed) a training step, the actor every second step, rows that add up to the
+    loop's time, which ends where the last evaluation starts (the evaluations at 200 and 400 are in it)."""
     out = tmp_path / "phases.csv"
-    flags = ["--env-id", "Pendulum-v1", "--learning-starts", "100", "--total-timesteps", "400", "--batch-size", "32"]
-    result = tool("phase_times.py", "td3", *flags, "--num-seeds", "2", "--warmup-updates", "50", "--csv", str(out))
+    flags = ["--env-id", "Pendulum-v1", "--learning-starts", "100", "--total-timesteps", "600", "--batch-size", "32"]
+    flags += ["--num-seeds", "2", "--eval-frequency", "200", "--eval-episodes", "1"]
+    result = tool("phase_times.py", "td3", *flags, "--warmup-updates", "50", "--csv", str(out), "--no-sync")
     assert result.returncode == 0, result.stderr
-    assert "250 training steps timed on cpu" in result.stdout
+    assert "450 training steps timed on cpu (1 thread(s))" in result.stdout
+    assert "(not synchronised: 0.0 device synchronisations a step)" in result.stdout
+    assert "evaluation (not in the loop's time): " in result.stdout and result.stdout.rstrip().endswith(" in 2 calls")
     with open(out) as f:
         rows = list(csv.DictReader(f))
+    assert list(rows[0]) == load_tool("phase_times").CSV_FIELDS and {row["synchronised"] for row in rows} == {"False"}
     phases = [row["phase"] for row in rows]
     assert phases[:5] == ["acting", "environment step", "environment reset", "storing the transition", "replay sampling"]
     assert phases[-1] == "rest of the loop" and "update: critic" in phases and "evaluation" not in phases
     calls = {row["phase"]: float(row["calls_per_step"]) for row in rows}
     assert calls["replay sampling"] == 1 and calls["environment step"] == 2 and calls["update: actor(s)"] == 0.5
+    assert calls["acting"] == 1 and calls["storing the transition"] == 1
     assert abs(sum(float(row["share"]) for row in rows) - 100) < 0.1 and float(rows[-1]["ms_per_step"]) >= 0
-    assert {row["script"] for row in rows} == {"td3"} and all(row["timed_steps"] == "250" for row in rows)
+    assert {row["script"] for row in rows} == {"td3"} and all(row["timed_steps"] == "450" for row in rows)
 
 
 @pytest.mark.parametrize(

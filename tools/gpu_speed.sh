@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
-# One-seed GPU speed beside CleanRL (docs/speed.md, "GPU: --cudagraphs"): CleanRL's TD3 and SAC and our td3, sac,
-# oparl and redq --cudagraphs on Hopper-v4, 3 repeats interleaved, each run timed by tools/throughput.py --window
-# (one process start per run; CleanRL's cumulative charts/SPS is read by its events' times), then where a step's
-# time goes in td3, oparl and redq --cudagraphs (tools/phase_times.py: each phase timed with the GPU
-# synchronised at its start and end, so a graph's replay is charged its kernels), then ours on cartpole-swingup
-# (CleanRL's scripts do not run DeepMind Control tasks). Results go to $OUT (on the device machine, the folder that
-# comes back; default here: gpu_out) in order of priority within a budget: speed.csv, phases.csv, log.txt. The first
-# step needs about 480 s, so the rest needs a second call from FIRST_STEP 2:
+# One-seed GPU speed beside CleanRL (docs/speed.md, "GPU: --cudagraphs"), in order of priority within a budget:
+# 1. CleanRL's TD3 and SAC and our td3, sac, oparl and redq --cudagraphs on Hopper-v4, 3 repeats interleaved, each
+#    run timed by tools/throughput.py --window (one process start per run; CleanRL's cumulative charts/SPS is read
+#    by its events' times): $OUT/speed.csv;
+# 2-4. where a step's time goes in td3, oparl and redq --cudagraphs (tools/phase_times.py: each phase timed with
+#    the GPU synchronised at its start and end, so a graph's replay is charged its kernels): $OUT/phases.csv;
+# 5-6. td3 and oparl again without synchronising (--no-sync: the host's view);
+# 7. ours on cartpole-swingup (CleanRL's scripts do not run DeepMind Control tasks).
+# $OUT is, on the device machine, the folder that comes back (default here: gpu_out); $OUT/log.txt says what ran.
+# Step 1 needs about 480 s, so the rest needs a second call from FIRST_STEP 2:
 #     BUDGET=540 bash tools/gpu_speed.sh [FIRST_STEP]
 # CLEANRL (default .cleanrl): a folder holding CleanRL's cleanrl/{td3,sac}_continuous_action.py and cleanrl_utils/
 # at the commit docs/speed.md names, e.g. `mkdir .cleanrl && git -C ../cleanrl archive fe8d8a0
@@ -25,9 +27,9 @@ speed() { # speed ENV_ID REPEATS [cleanrl]: every entry once per repeat, interle
     python tools/throughput.py "${entries[@]}" --env-id "$1" --cuda --window --learning-starts 500 --steps 1500 \
         --repeats "$2" --csv "$CSV"
 }
-phases() { # phases SCRIPT ENV_ID [STEPS]: ms per training step by phase, after 500 random and 300 warm-up training steps
+phases() { # phases SCRIPT ENV_ID [STEPS [FLAGS]]: ms per training step by phase, after 500 random and 300 warm-up steps
     python tools/phase_times.py "$1" --env-id "$2" --cudagraphs --learning-starts 500 --total-timesteps "${3:-3000}" \
-        --eval-frequency 1000000000 --eval-episodes 1 --warmup-updates 300 --csv "$OUT/phases.csv"
+        --eval-frequency 1000000000 --eval-episodes 1 --warmup-updates 300 --csv "$OUT/phases.csv" "${@:4}"
 }
 export -f speed phases
 
@@ -36,5 +38,7 @@ step 480 "speed Hopper-v4 3 cleanrl"
 step 30 "phases td3 Hopper-v4"
 step 30 "phases oparl Hopper-v4"
 step 40 "phases redq Hopper-v4 1500"
+step 30 "phases td3 Hopper-v4 3000 --no-sync"   # the host's view: a replay returns at once, acting waits for it
+step 30 "phases oparl Hopper-v4 3000 --no-sync"
 step 240 "speed dm_control/cartpole-swingup-v0 3"
 echo "done at ${SECONDS} s" | tee -a "$LOG"

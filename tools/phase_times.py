@@ -2,20 +2,26 @@
 
 Runs one of the off-policy scripts (td3, sac, oparl, redq) in this process with its phases wrapped in timers:
 acting, the environment step, storing the transition, replay sampling, the update (under --cudagraphs: the graph's
-replay and its input copies; eager: the TD target, the critic, actor and alpha updates and the target networks),
+replay and its input copies, TD3's two graphs (with and without the actor) averaged, REDQ's one graph of its 20
+critic updates, actor and alpha; eager: the TD target, the critic, actor and alpha updates, the target networks),
 logging, checkpoints and evaluation. On a GPU every timer synchronises the device when its phase starts and ends,
 so the kernels a phase launched are charged to it: without that, a graph's replay returns at once and its GPU time
 shows up as waiting in the next step's acting (which is all py-spy, tools/profile_run.py, can see). The
-synchronisations cost a few microseconds each and remove the little overlap the loop has; the table says how
-many a step makes. Time spent inside a phase's inner phases is charged to the inner ones (each row is exclusive);
-evaluation is charged whole. The first --warmup-updates training steps (the first updates and, with --cudagraphs,
-the recordings) are not timed. For example:
+synchronisations remove what little overlap of host and GPU the loop has and cost a few microseconds each (the
+tool prints how many a step made and what an idle one costs), so the total is a synchronised step, slower than
+tools/throughput.py's rates: compare phases within a table, and rates with throughput.py. --no-sync times the
+same phases without synchronising (the host's view). Time inside a phase's inner phases is charged to the inner
+ones (each row is exclusive); evaluation is charged whole; "rest of the loop" is what no phase holds: Python,
+the progress bar, copying the actions to the host, and any GPU work left unsynchronised by then. The first
+--warmup-updates training steps (the first updates and, with --cudagraphs, the recordings) are not timed, nor is
+anything from the last evaluation on. For example:
 
     python tools/phase_times.py td3 --env-id Hopper-v4 --cudagraphs --learning-starts 500 --total-timesteps 3000
     python tools/phase_times.py oparl --env-id Hopper-v4 --learning-starts 500 --total-timesteps 1500 --csv phases.csv
 
-Everything after the script's short name (and this tool's own flags) is passed to the script; the run goes to a
-throw-away folder, with one torch thread unless OMP_NUM_THREADS says otherwise.
+Everything after the script's short name (and this tool's own flags: --warmup-updates N, --csv PATH, --no-sync)
+is passed to the script; the run goes to a throw-away folder, with one torch thread unless OMP_NUM_THREADS says
+otherwise.
 """
 
 import collections
@@ -44,21 +50,22 @@ PHASES = [
     ("update: target networks", None, "soft_update"),
     ("logging", None, "log_scalars"),
     ("checkpoints", None, "write_checkpoints"),
+    ("checkpoints", None, "snapshot"),  # the state a checkpoint holds, taken before write_checkpoints is called
+    ("checkpoints", None, "split_seeds"),
     ("evaluation", None, "evaluate"),
 ]
 ENV_PHASES = [("environment step", "step"), ("environment reset", "reset")]
 WHOLE = "evaluation"  # charged whole: the environment steps and actions inside it are not split out
-LOOP_ORDER = (
-    ["acting"] + [p for p, _ in ENV_PHASES] + ["storing the transition", "replay sampling"]
-)  # rows, in the loop's order
-ORDER = list(dict.fromkeys(LOOP_ORDER + [p for p, _, _ in PHASES]))
+# the table's rows: the loop's phases in the loop's order, then the update's parts and the rest
+ORDER = list(dict.fromkeys(["acting", "environment step", "environment reset"] + [p for p, _, _ in PHASES]))
 
 
 class PhaseTimer:
     """Wraps functions in exclusive wall-clock timers: a call's time minus its timed inner calls' goes to its phase.
-    `sync` runs at every phase's start and end (torch.cuda.synchronize on a GPU)."""
+    `sync` runs at every phase's start and end (torch.cuda.synchronize on a GPU) and says whether it synchronised;
+    `syncs` counts the synchronisations made."""
 
-    def __init__(self, sync=lambda: None):
+    def __init__(self, sync=lambda: False):
         self.sync = sync
         self.seconds, self.calls = collections.Counter(), collections.Counter()
         self.stack = []  # [phase, seconds of timed inner calls] of the calls in progress
@@ -74,15 +81,13 @@ class PhaseTimer:
         def timed(*args, **kwargs):
             if self.stack and self.stack[-1][0] == WHOLE:
                 return fn(*args, **kwargs)
-            self.sync()
-            self.syncs += 1
+            self.syncs += bool(self.sync())  # before the clock: it waits for work of the phases before
             start = time.perf_counter()
             self.stack.append([phase, 0.0])
             try:
                 return fn(*args, **kwargs)
             finally:
-                self.sync()
-                self.syncs += 1
+                self.syncs += bool(self.sync())
                 elapsed = time.perf_counter() - start
                 _, inner = self.stack.pop()
                 self.seconds[phase] += elapsed - inner
@@ -93,17 +98,31 @@ class PhaseTimer:
         return timed
 
 
-def cuda_sync():
+def cuda_sync() -> bool:
     import torch
 
     if torch.cuda.is_available() and torch.cuda.is_initialized() and not torch.cuda.is_current_stream_capturing():
         torch.cuda.synchronize()  # (a sync inside a graph's recording would end it)
+        return True
+    return False
+
+
+def idle_sync_cost(repeats: int = 1000) -> float:
+    """Seconds one torch.cuda.synchronize() takes with nothing queued."""
+    import torch
+
+    torch.cuda.synchronize()
+    start = time.perf_counter()
+    for _ in range(repeats):
+        torch.cuda.synchronize()
+    return (time.perf_counter() - start) / repeats
 
 
 def instrument(module, timer: PhaseTimer, warmup_updates: int) -> dict:
     """Wraps the script's phases in the timer; the clock starts (and every count resets) when the first training
-    step after the first warmup_updates starts, at its acting. Returns the clock: its start and the timed steps."""
-    clock = {"start": None, "steps": 0, "samples": 0}
+    step after the first warmup_updates starts, at its acting, and every evaluation that starts after that marks
+    where the timed loop may end (the last one's mark is the run's). Returns the clock."""
+    clock = {"start": None, "steps": 0, "samples": 0, "mark": None}
     for phase, owner, name in PHASES:
         target = module if owner is None else getattr(module, owner, None)
         if target is not None and hasattr(target, name):
@@ -121,6 +140,15 @@ def instrument(module, timer: PhaseTimer, warmup_updates: int) -> dict:
         return sample(*args, **kwargs)
 
     module.ReplayBuffer.sample = counted_sample
+    evaluate = module.evaluate
+
+    @functools.wraps(evaluate)
+    def marked_evaluate(*args, **kwargs):
+        if clock["start"] is not None:
+            clock["mark"] = snapshot(timer, clock)
+        return evaluate(*args, **kwargs)
+
+    module.evaluate = marked_evaluate
     make_env, wrapped = module.make_env, set()
 
     @functools.wraps(make_env)
@@ -150,52 +178,67 @@ def start_clock_before(act, timer: PhaseTimer, clock: dict, warmup_updates: int)
     return acting
 
 
-def table(timer: PhaseTimer, clock: dict, wall: float) -> list:
-    """Rows (phase, ms per training step, share of the loop's time, calls per step); the loop's time excludes
-    evaluation, and "rest of the loop" is what no phase holds (Python, conversions, the progress bar)."""
-    steps = clock["steps"]
-    loop = wall - timer.seconds[WHOLE]
-    rows = [(p, timer.seconds[p], timer.calls[p]) for p in ORDER if p != WHOLE and timer.calls[p]]
+def snapshot(timer: PhaseTimer, clock: dict) -> dict:
+    """The timed loop so far: its wall time, the timer's seconds, calls and synchronisations, the training steps."""
+    wall = time.perf_counter() - clock["start"]
+    return {
+        "wall": wall,
+        "seconds": timer.seconds.copy(),
+        "calls": timer.calls.copy(),
+        "syncs": timer.syncs,
+        "steps": clock["steps"],
+    }
+
+
+def table(mark: dict) -> list:
+    """Rows (phase, ms per training step, share of the loop's time, calls per step) of a snapshot; the loop's time
+    excludes the evaluations in it, and "rest of the loop" is what no phase holds."""
+    steps, seconds, calls = mark["steps"], mark["seconds"], mark["calls"]
+    loop = mark["wall"] - seconds[WHOLE]
+    rows = [(p, seconds[p], calls[p]) for p in ORDER if p != WHOLE and calls[p]]
     rows.append(("rest of the loop", loop - sum(s for _, s, _ in rows), steps))
     return [(p, 1000 * s / steps, 100 * s / loop, c / steps) for p, s, c in rows]
 
 
-def main(argv=None):
-    argv = sys.argv[1:] if argv is None else list(argv)
+def parse(argv: list) -> tuple:
+    """(script, warm-up updates, CSV path or None, whether to synchronise, the script's own flags)."""
     if not argv or argv[0] in {"-h", "--help"}:
         sys.exit(__doc__)
-    own = {"--warmup-updates": 200, "--csv": None}
-    script_argv = []
-    rest = argv[1:]
+    if argv[0] not in SCRIPTS:
+        sys.exit(
+            f"error: usage: python tools/phase_times.py {{{','.join(SCRIPTS)}}} [--warmup-updates N] [--csv PATH] [--no-sync] [flags]"
+        )
+    own, sync, script_argv, rest = {"--warmup-updates": "200", "--csv": None}, True, [], argv[1:]
     while rest:
         word = rest.pop(0)
-        if word in own:
+        if word == "--no-sync":
+            sync = False
+        elif word in own:
             if not rest:
                 sys.exit(f"error: {word} needs a value")
             own[word] = rest.pop(0)
         else:
             script_argv.append(word)
-    if argv[0] not in SCRIPTS:
-        sys.exit(
-            f"error: usage: python tools/phase_times.py {{{','.join(SCRIPTS)}}} [--warmup-updates N] [--csv PATH] [flags]"
-        )
-    try:
-        warmup = int(own["--warmup-updates"])
-        assert warmup >= 0
-    except (ValueError, AssertionError):
-        sys.exit(f"error: --warmup-updates must be an integer >= 0, got {own['--warmup-updates']}")
-    csv_path = os.path.abspath(own["--csv"]) if own["--csv"] else None
+    warmup = own["--warmup-updates"]
+    if not warmup.isdigit():
+        sys.exit(f"error: --warmup-updates must be an integer >= 0, got {warmup}")
+    return argv[0], int(warmup), os.path.abspath(own["--csv"]) if own["--csv"] else None, sync, script_argv
+
+
+def main(argv=None):
+    script, warmup, csv_path, sync, script_argv = parse(sys.argv[1:] if argv is None else list(argv))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     sys.path.insert(0, REPO)
-    name = f"{argv[0]}_continuous_action"
+    name = f"{script}_continuous_action"
     spec = importlib.util.spec_from_file_location(name, os.path.join(REPO, f"{name}.py"))
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
     import torch
 
-    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
-    timer = PhaseTimer(cuda_sync)
+    threads = int(os.environ["OMP_NUM_THREADS"])
+    torch.set_num_threads(threads)
+    timer = PhaseTimer(cuda_sync) if sync else PhaseTimer()
     clock = instrument(module, timer, warmup)
     args = module.parse_args(script_argv)
     with tempfile.TemporaryDirectory() as workdir:
@@ -205,32 +248,46 @@ def main(argv=None):
             module.main(args)
         finally:
             os.chdir(here)
-    wall = time.perf_counter() - clock["start"] if clock["start"] is not None else 0.0
-    if not clock["steps"]:
+    mark = clock["mark"] or (snapshot(timer, clock) if clock["start"] is not None else None)
+    if mark is None or not mark["steps"]:
         sys.exit(f"error: no training step after the {warmup} warm-up ones: give more --total-timesteps")
-    rows = table(timer, clock, wall)
-    device = torch.cuda.get_device_name() if torch.cuda.is_initialized() else "cpu"
-    per_step = sum(ms for _, ms, _, _ in rows)
-    flags = " ".join(script_argv)
-    print(f"{argv[0]} {flags}: {clock['steps']} training steps timed on {device}, {per_step:.3f} ms a step")
-    print(f"({1000 / per_step:.1f} steps/s with {timer.syncs / clock['steps']:.1f} timer synchronisations a step)")
+    rows = table(mark)
+    on_gpu = torch.cuda.is_initialized()
+    device = torch.cuda.get_device_name() if on_gpu else "cpu"
+    per_step, steps, flags = sum(ms for _, ms, _, _ in rows), mark["steps"], " ".join(script_argv)
+    how = "synchronised at every phase's start and end" if sync and on_gpu else "not synchronised"
+    print(f"{script} {flags}: {steps} training steps timed on {device} ({threads} thread(s)), {per_step:.3f} ms a step")
+    print(f"({how}: {mark['syncs'] / steps:.1f} device synchronisations a step", end="")
+    print(f", an idle one {idle_sync_cost() * 1e6:.1f} us)" if on_gpu else ")")
     print("| phase | ms per training step | share of the loop | calls per step |")
     print("|---|---|---|---|")
     for phase, ms, share, calls in rows:
         print(f"| {phase} | {ms:.3f} | {share:.1f}% | {calls:.2f} |")
-    if timer.calls[WHOLE]:
-        print(f"evaluation (not in the loop's time): {timer.seconds[WHOLE]:.2f} s in {timer.calls[WHOLE]} calls")
+    if mark["calls"][WHOLE]:
+        print(f"evaluation (not in the loop's time): {mark['seconds'][WHOLE]:.2f} s in {mark['calls'][WHOLE]} calls")
     if csv_path:
         new = not os.path.exists(csv_path)
         with open(csv_path, "a", newline="") as f:
             writer = csv.writer(f)
             if new:
-                writer.writerow(
-                    ["script", "flags", "device", "timed_steps", "phase", "ms_per_step", "share", "calls_per_step"]
-                )
+                writer.writerow(CSV_FIELDS)
             for phase, ms, share, calls in rows:
-                writer.writerow([argv[0], flags, device, clock["steps"], phase, f"{ms:.4f}", f"{share:.2f}", f"{calls:.3f}"])
+                values = [script, flags, device, threads, sync and on_gpu, steps, phase, f"{ms:.4f}", f"{share:.2f}"]
+                writer.writerow([*values, f"{calls:.3f}"])
 
+
+CSV_FIELDS = [
+    "script",
+    "flags",
+    "device",
+    "threads",
+    "synchronised",
+    "timed_steps",
+    "phase",
+    "ms_per_step",
+    "share",
+    "calls_per_step",
+]
 
 if __name__ == "__main__":
     main()
