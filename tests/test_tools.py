@@ -201,6 +201,18 @@ def test_throughput_summary_is_the_median_with_its_range_and_ratio():
     assert rows[1] == ("oparl --num-seeds 4", 4.5, 1.0, 6.0, 2.25, 18.0)
 
 
+def test_throughput_takes_the_gpu_name_it_is_given(monkeypatch):
+    throughput = load_tool("throughput")
+    monkeypatch.setenv("GPU_NAME", "NVIDIA H200")
+    assert throughput.gpu_name() == "NVIDIA H200"
+    monkeypatch.delenv("GPU_NAME")
+    asked = []
+    monkeypatch.setattr(
+        throughput.subprocess, "run", lambda cmd, **kw: asked.append(cmd) or subprocess.CompletedProcess(cmd, 0, "X\n")
+    )
+    assert throughput.gpu_name() == "X" and len(asked) == 1
+
+
 def test_throughput_refuses_bad_settings():
     result = tool("throughput.py", "td3", "--steps", "0")
     assert result.returncode != 0 and "--steps must be > 0" in result.stderr

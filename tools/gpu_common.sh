@@ -1,4 +1,4 @@
-# Sourced by tools/gpu_seed_scaling.sh and tools/gpu_speed.sh (not run alone): their budget, their steps and
+# Sourced by tools/gpu_seed_scaling.sh and tools/gpu_speed.sh (not run alone): their budget, their steps, MPS and
 # the machine's description. Reads OUT (default gpu_out), BUDGET (seconds, default 540) and the first argument
 # (FIRST_STEP, default 1); writes $OUT/machine.txt and appends to $OUT/log.txt.
 OUT=${OUT:-gpu_out}
@@ -8,17 +8,46 @@ mkdir -p "$OUT"
 LOG=$OUT/log.txt
 export PYTHONUNBUFFERED=1
 n=0
-step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budget, within what is left
+STOPPED=0
+step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budget, within what is left; the first
+    # step that does not fit stops the list (the later ones are not run out of order), and the log names it
     n=$((n + 1))
     local need=$1 command=$2
-    if ((n < FIRST)); then return; fi
+    if ((n < FIRST || STOPPED)); then return; fi
     if ((SECONDS + need > BUDGET)); then
-        echo "step $n skipped (needs ~${need} s, $((BUDGET - SECONDS)) s left): $command" | tee -a "$LOG"
+        STOPPED=1
+        echo "stopped before step $n (needs ~${need} s, $((BUDGET - SECONDS)) s left): run again with FIRST_STEP $n" | tee -a "$LOG"
         return
     fi
     echo "== step $n at ${SECONDS} s: $command" | tee -a "$LOG"
     timeout $((BUDGET - SECONDS)) bash -c "$command" >>"$LOG" 2>&1 || echo "step $n failed ($?): $command" | tee -a "$LOG"
 }
+again() { # again SECONDS_IT_NEEDS "command": a step of every call, whatever FIRST_STEP (the single-seed baseline
+    # that a call's rows are read beside); not numbered, and skipped, not stopping the list, when it does not fit
+    if ((STOPPED)); then return; fi
+    if ((SECONDS + $1 > BUDGET)); then
+        echo "skipped (needs ~$1 s, $((BUDGET - SECONDS)) s left): $2" | tee -a "$LOG"
+        return
+    fi
+    echo "== every call, at ${SECONDS} s: $2" | tee -a "$LOG"
+    timeout $((BUDGET - SECONDS)) bash -c "$2" >>"$LOG" 2>&1 || echo "failed ($?): $2" | tee -a "$LOG"
+}
+mps() { # mps on|off: starts or stops the MPS daemon when that changes its state (kept in /tmp/mps_state, which a
+    # fresh machine lacks: off); every script ends with it off
+    [ "$1" = "$(cat /tmp/mps_state 2>/dev/null || echo off)" ] && return 0
+    if [ "$1" = on ]; then
+        nvidia-cuda-mps-control -d
+    else
+        echo quit | nvidia-cuda-mps-control
+    fi
+    echo "$1" >/tmp/mps_state
+    sleep 2
+}
+export -f mps
+trap 'mps off' EXIT
+# the GPU's name for tools/throughput.py's CSV, asked once here instead of in every timed step
+GPU_NAME=$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -n 1)
+export GPU_NAME
 {
     nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
     python -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"

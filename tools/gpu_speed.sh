@@ -8,15 +8,17 @@
 # 5-6. td3 and oparl again without synchronising (--no-sync: the host's view);
 # 7. ours on cartpole-swingup (CleanRL's scripts do not run DeepMind Control tasks).
 # $OUT is, on the device machine, the folder that comes back (default here: gpu_out); $OUT/log.txt says what ran.
-# Step 1 needs about 480 s, so the rest needs a second call from FIRST_STEP 2:
-#     BUDGET=540 bash tools/gpu_speed.sh [FIRST_STEP]
+# Step 1 needs about 510 s, a call of its own; the rest a second call, from the step the log says it stopped before:
+#     BUDGET=570 bash tools/gpu_speed.sh [FIRST_STEP]
 # CLEANRL (default .cleanrl): a folder holding CleanRL's cleanrl/{td3,sac}_continuous_action.py and cleanrl_utils/
 # at the commit docs/speed.md names, e.g. `mkdir .cleanrl && git -C ../cleanrl archive fe8d8a0
-# cleanrl/td3_continuous_action.py cleanrl/sac_continuous_action.py cleanrl_utils | tar -x -C .cleanrl` (list it in
-# .git/info/exclude and carry it); without it only our scripts are timed.
+# cleanrl/td3_continuous_action.py cleanrl/sac_continuous_action.py cleanrl_utils | tar -x -C .cleanrl && echo fe8d8a0
+# > .cleanrl/COMMIT` (list it in .git/info/exclude and carry it); without it only our scripts are timed.
 set -u
 source "$(dirname "$0")/gpu_common.sh"   # OUT, BUDGET, FIRST_STEP, LOG, step, $OUT/machine.txt
-CLEANRL=$(cd "${CLEANRL:-.cleanrl}" 2>/dev/null && pwd)
+ASKED=${CLEANRL:-.cleanrl}
+CLEANRL=$(cd "$ASKED" 2>/dev/null && pwd)
+echo "cleanrl: ${CLEANRL:-none} at commit $(cat "$CLEANRL/COMMIT" 2>/dev/null || echo unknown)" >>"$OUT/machine.txt"
 export CSV=$OUT/speed.csv PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$CLEANRL
 export CLEANRL C=$CLEANRL/cleanrl
 speed() { # speed ENV_ID REPEATS [cleanrl]: every entry once per repeat, interleaved; one 1000-step window per run
@@ -25,7 +27,7 @@ speed() { # speed ENV_ID REPEATS [cleanrl]: every entry once per repeat, interle
         entries=("$C/td3_continuous_action.py" "${entries[@]}" "$C/sac_continuous_action.py")
     fi
     python tools/throughput.py "${entries[@]}" --env-id "$1" --cuda --window --learning-starts 500 --steps 1500 \
-        --repeats "$2" --csv "$CSV"
+        --repeats "$2" --csv "$CSV" --label mps=off
 }
 phases() { # phases SCRIPT ENV_ID [STEPS [FLAGS]]: ms per training step by phase, after 500 random and 300 warm-up steps
     python tools/phase_times.py "$1" --env-id "$2" --cudagraphs --learning-starts 500 --total-timesteps "${3:-3000}" \
@@ -33,8 +35,9 @@ phases() { # phases SCRIPT ENV_ID [STEPS [FLAGS]]: ms per training step by phase
 }
 export -f speed phases
 
-[ -n "$CLEANRL" ] || echo "no CleanRL folder (CLEANRL=${CLEANRL:-.cleanrl}): our scripts only" | tee -a "$LOG"
-step 480 "speed Hopper-v4 3 cleanrl"
+[ -n "$CLEANRL" ] || echo "no CleanRL folder ($ASKED): our scripts only" | tee -a "$LOG"
+mps off   # one process at a time: no MPS (a daemon an earlier call of gpu_seed_scaling.sh left on is stopped)
+step 510 "speed Hopper-v4 3 cleanrl"
 step 30 "phases td3 Hopper-v4"
 step 30 "phases oparl Hopper-v4"
 step 40 "phases redq Hopper-v4 1500"

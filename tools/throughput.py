@@ -237,7 +237,10 @@ def cpu_name() -> str:
 
 
 def gpu_name() -> str:
-    """The GPU's name, asked in a child process: a CUDA context held here would sit beside every timed run."""
+    """The GPU's name: $GPU_NAME if set (tools/gpu_common.sh asks nvidia-smi once for all its steps), else asked in a
+    child process (a few seconds: a CUDA context held here would sit beside every timed run)."""
+    if os.environ.get("GPU_NAME"):
+        return os.environ["GPU_NAME"]
     ask = "import torch; print(torch.cuda.get_device_name() if torch.cuda.is_available() else 'no GPU found')"
     result = subprocess.run([sys.executable, "-c", ask], capture_output=True, text=True, check=False)
     return result.stdout.strip() or "no GPU found"
