@@ -9,18 +9,20 @@ LOG=$OUT/log.txt
 export PYTHONUNBUFFERED=1
 n=0
 STOPPED=0
-step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budget, within what is left; the first
-    # step that does not fit stops the list (the later ones are not run out of order), and the log names it
+run_step() { # run_step LABEL SECONDS_IT_NEEDS "command": runs the command within what is left of the budget
+    echo "== $1 at ${SECONDS} s: $3" | tee -a "$LOG"
+    timeout $((BUDGET - SECONDS)) bash -c "$3" >>"$LOG" 2>&1 || echo "$1 failed ($?): $3" | tee -a "$LOG"
+}
+step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budget; the first step that does not fit
+    # stops the list (the later ones are not run out of order), and the log names it
     n=$((n + 1))
-    local need=$1 command=$2
     if ((n < FIRST || STOPPED)); then return; fi
-    if ((SECONDS + need > BUDGET)); then
+    if ((SECONDS + $1 > BUDGET)); then
         STOPPED=1
-        echo "stopped before step $n (needs ~${need} s, $((BUDGET - SECONDS)) s left): run again with FIRST_STEP $n" | tee -a "$LOG"
+        echo "stopped before step $n (needs ~$1 s, $((BUDGET - SECONDS)) s left): run again with FIRST_STEP $n" | tee -a "$LOG"
         return
     fi
-    echo "== step $n at ${SECONDS} s: $command" | tee -a "$LOG"
-    timeout $((BUDGET - SECONDS)) bash -c "$command" >>"$LOG" 2>&1 || echo "step $n failed ($?): $command" | tee -a "$LOG"
+    run_step "step $n" "$@"
 }
 again() { # again SECONDS_IT_NEEDS "command": a step of every call, whatever FIRST_STEP (the single-seed baseline
     # that a call's rows are read beside); not numbered, and skipped, not stopping the list, when it does not fit
@@ -29,8 +31,7 @@ again() { # again SECONDS_IT_NEEDS "command": a step of every call, whatever FIR
         echo "skipped (needs ~$1 s, $((BUDGET - SECONDS)) s left): $2" | tee -a "$LOG"
         return
     fi
-    echo "== every call, at ${SECONDS} s: $2" | tee -a "$LOG"
-    timeout $((BUDGET - SECONDS)) bash -c "$2" >>"$LOG" 2>&1 || echo "failed ($?): $2" | tee -a "$LOG"
+    run_step "every call" "$@"
 }
 mps() { # mps on|off: starts or stops the MPS daemon when that changes its state (kept in /tmp/mps_state, which a
     # fresh machine lacks: off); every script ends with it off

@@ -127,7 +127,7 @@ def instrument(module, timer: PhaseTimer, warmup_updates: int) -> dict:
         target = module if owner is None else getattr(module, owner, None)
         if target is not None and hasattr(target, name):
             setattr(target, name, timer.wrap(phase, getattr(target, name)))
-    for name in ("noisy_action", "optimistic_action"):  # the first of a training step's phases
+    for name in (name for phase, _, name in PHASES if phase == "acting"):  # the first of a training step's phases
         if hasattr(module, name):
             setattr(module, name, start_clock_before(getattr(module, name), timer, clock, warmup_updates))
     sample = module.ReplayBuffer.sample
