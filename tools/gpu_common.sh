@@ -1,6 +1,7 @@
 # Sourced by tools/gpu_seed_scaling.sh and tools/gpu_speed.sh (not run alone): their budget, their steps, MPS and
-# the machine's description. Reads OUT (default gpu_out), BUDGET (seconds, default 540) and the first argument
-# (FIRST_STEP, default 1); writes $OUT/machine.txt and appends to $OUT/log.txt.
+# the machine's description. Reads OUT (default gpu_out), BUDGET (seconds, default 540), the first argument
+# (FIRST_STEP, default 1), MPS_STATE and MPS_SETTLE (see mps; tests/test_gpu_scripts.py sets them); writes
+# $OUT/machine.txt and appends to $OUT/log.txt.
 OUT=${OUT:-gpu_out}
 BUDGET=${BUDGET:-540}
 FIRST=${1:-1}
@@ -33,16 +34,18 @@ again() { # again SECONDS_IT_NEEDS "command": a step of every call, whatever FIR
     fi
     run_step "every call" "$@"
 }
-mps() { # mps on|off: starts or stops the MPS daemon when that changes its state (kept in /tmp/mps_state, which a
-    # fresh machine lacks: off); every script ends with it off
-    [ "$1" = "$(cat /tmp/mps_state 2>/dev/null || echo off)" ] && return 0
+MPS_STATE=${MPS_STATE:-/tmp/mps_state} MPS_SETTLE=${MPS_SETTLE:-2}
+export MPS_STATE MPS_SETTLE
+mps() { # mps on|off: starts or stops the MPS daemon when that changes its state (kept in $MPS_STATE, which a fresh
+    # machine lacks: off), then waits MPS_SETTLE seconds; every script ends with it off
+    [ "$1" = "$(cat "$MPS_STATE" 2>/dev/null || echo off)" ] && return 0
     if [ "$1" = on ]; then
         nvidia-cuda-mps-control -d
     else
         echo quit | nvidia-cuda-mps-control
     fi
-    echo "$1" >/tmp/mps_state
-    sleep 2
+    echo "$1" >"$MPS_STATE"
+    sleep "$MPS_SETTLE"
 }
 export -f mps
 trap 'mps off' EXIT
