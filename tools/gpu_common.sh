@@ -10,6 +10,7 @@ LOG=$OUT/log.txt
 export PYTHONUNBUFFERED=1
 n=0
 STOPPED=0
+fits() { ((SECONDS + $1 <= BUDGET)); } # fits SECONDS_IT_NEEDS: whether that much is left of the budget
 run_step() { # run_step LABEL SECONDS_IT_NEEDS "command": runs the command within what is left of the budget
     echo "== $1 at ${SECONDS} s: $3" | tee -a "$LOG"
     timeout $((BUDGET - SECONDS)) bash -c "$3" >>"$LOG" 2>&1 || echo "$1 failed ($?): $3" | tee -a "$LOG"
@@ -18,7 +19,7 @@ step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budg
     # stops the list (the later ones are not run out of order), and the log names it
     n=$((n + 1))
     if ((n < FIRST || STOPPED)); then return; fi
-    if ((SECONDS + $1 > BUDGET)); then
+    if ! fits "$1"; then
         STOPPED=1
         echo "stopped before step $n (needs ~$1 s, $((BUDGET - SECONDS)) s left): run again with FIRST_STEP $n" | tee -a "$LOG"
         return
@@ -28,7 +29,7 @@ step() { # step SECONDS_IT_NEEDS "command": runs the command if it fits the budg
 again() { # again SECONDS_IT_NEEDS "command": a step of every call, whatever FIRST_STEP (the single-seed baseline
     # that a call's rows are read beside); not numbered, and skipped, not stopping the list, when it does not fit
     if ((STOPPED)); then return; fi
-    if ((SECONDS + $1 > BUDGET)); then
+    if ! fits "$1"; then
         echo "skipped (needs ~$1 s, $((BUDGET - SECONDS)) s left): $2" | tee -a "$LOG"
         return
     fi

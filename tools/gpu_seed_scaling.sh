@@ -6,7 +6,8 @@
 # each timing step sets MPS as it needs it), so a lease that ends early still leaves the steps before it. Each
 # shape runs once; the whole list needs about 1,500 s of steps, from step 16 about 800 s, two calls (more than one
 # session's 15 minutes of device time): the log names the step a call stopped before; run it again from there
-# (FIRST_STEP), on a warm machine or a fresh one. On the device machine $OUT is the folder that comes back (default here: gpu_out):
+# (FIRST_STEP), on a warm machine or a fresh one. On the device machine $OUT is the folder that comes back
+# (default here: gpu_out):
 #     BUDGET=540 bash tools/gpu_seed_scaling.sh [FIRST_STEP]
 # BUDGET: seconds. Needs CUDA, MPS (nvidia-cuda-mps-control) and the NumPy that requirements.txt pins: carry its
 # wheel (docs/sweeps.md, "One GPU"); under NumPy 2.5 dm-control writes a DeprecationWarning at every environment
