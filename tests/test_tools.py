@@ -250,6 +250,19 @@ def test_profile_run_attributes_samples_to_phases():
     assert "| critic update (forward, backward, Adam) |" in result.stdout and "| TD target |" in result.stdout
 
 
+def test_profile_run_charges_acting_under_no_grad_to_acting():
+    """py-spy puts torch.no_grad's wrapper between main and noisy_action (a stack as py-spy 0.4.3 reported it)."""
+    phase_of = load_tool("profile_run").phase_of
+    main = ["<module> (sac_continuous_action.py:1017)", "main (sac_continuous_action.py:439)"]
+    no_grad = "context_decorator.<locals>.decorate_context (torch/utils/_contextlib.py:124)"
+    forward = ["Actor.get_action (sac_continuous_action.py:182)", "Module._call_impl (torch/nn/modules/module.py:1789)"]
+    for acting in ("noisy_action (sac_continuous_action.py:251)", "optimistic_action (oparl_continuous_action.py:300)"):
+        assert phase_of([*main, no_grad, acting, *forward]) == "acting (actor forward, noise)"
+    assert phase_of([*main, "Box.sample (gymnasium/spaces/box.py:200)"]) == "acting (actor forward, noise)"
+    assert phase_of([*main, "ReplayBuffer.add (sac_continuous_action.py:220)"]) == "storing the transition"
+    assert phase_of([*main, no_grad]) == "rest of the loop (Python, conversions, progress bar)"
+
+
 def test_phase_timer_charges_each_phase_its_own_time(monkeypatch):
     """Exclusive rows: an outer phase is charged its time minus its timed inner calls'; evaluation is charged
     whole (the environment steps inside it are not split out); the device is synchronised at every boundary."""

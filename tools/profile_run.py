@@ -29,6 +29,7 @@ PHASES = [
     ("entropy (alpha) update", {"update_alpha"}),
     ("target networks (Polyak)", {"soft_update"}),
     ("evaluation", {"evaluate"}),
+    ("acting (actor forward, noise)", {"noisy_action", "optimistic_action"}),  # under @torch.no_grad's decorate_context
     ("storing the transition", {"ReplayBuffer.add"}),
     ("environment step", {"Wrapper.step", "TimeLimit.step", "OrderEnforcing.step", "PassiveEnvChecker.step"}),
     ("environment reset", {"Wrapper.reset", "TimeLimit.reset", "OrderEnforcing.reset", "PassiveEnvChecker.reset"}),
@@ -36,7 +37,7 @@ PHASES = [
     ("--cudagraphs: graph replay and its input copies", {"CudaGraph.__call__"}),  # warm-up calls: the phases above
     ("logging (TensorBoard)", {"SummaryWriter.add_scalar", "SummaryWriter.add_text"}),
 ]
-# what main calls directly to pick an action
+# what else main calls directly to pick an action (random actions before learning starts)
 ACTING = {"Module._wrapped_call_impl", "optimistic_action", "Actor.get_action", "Box.sample", "_clip", "Tensor.numpy"}
 STARTUP = {
     "Optimizer.__init__",
@@ -114,7 +115,6 @@ def main(argv=None):
     print("| phase | share of all samples | share of the training loop |")
     print("|---|---|---|")
     for phase in [p for p, _ in PHASES] + [
-        "acting (actor forward, noise)",
         "rest of the loop (Python, conversions, progress bar)",
         "start-up and imports",
     ]:
