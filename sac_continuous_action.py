@@ -189,6 +189,12 @@ class Actor(nn.Module):
         log_prob = (normal.log_prob(x_t) - torch.log(self.action_scale * (1 - y_t.pow(2)) + 1e-6)).sum(-1)
         return action, log_prob, torch.tanh(mean) * self.action_scale + self.action_bias
 
+    def sampled_action(self, x, generators=None):
+        """get_action's sampled action alone, from the same draws: what acting takes, without the log-probability and
+        deterministic action it would discard (on a GPU each of their kernels is one more launch in every step)."""
+        mean, log_std = self(x)
+        return torch.tanh(mean + randn_like(mean, generators) * log_std.exp()) * self.action_scale + self.action_bias
+
     def deterministic_action(self, x):
         """The squashed mean action (what get_action returns last), without drawing noise: what evaluations take."""
         mean, _ = self(x)
@@ -248,7 +254,7 @@ def randn_like(x: torch.Tensor, generators: Optional[Sequence] = None) -> torch.
 @torch.no_grad()
 def noisy_action(obs, actor: Actor, generators=None) -> torch.Tensor:
     """Each seed's action (obs [num_seeds, obs_dim]) sampled from its policy: SAC explores with the policy's own randomness."""
-    return actor.get_action(torch.as_tensor(obs, device=actor.action_scale.device), generators)[0]
+    return actor.sampled_action(torch.as_tensor(obs, device=actor.action_scale.device), generators)
 
 
 def td_target(batch: Batch, actor: Actor, qf_target: QEnsemble, alpha: torch.Tensor, args: Args, generators=None):

@@ -199,3 +199,20 @@ def test_acting_samples_from_the_policy():
     _, _, mean = actor.get_action(obs[None])
     torch.testing.assert_close(actions.mean(0), mean[0].detach(), atol=0.1, rtol=0)
     assert (actions.std(0) > 0.1 * actor.action_scale).all()  # spread: the policy's own noise, not its mean
+
+
+@pytest.mark.parametrize("num_seeds", [1, 3])
+def test_acting_takes_get_actions_sampled_action_from_the_same_draws(num_seeds):
+    """Acting skips the log-probability and deterministic action (sampled_action), yet acts and draws as get_action:
+    the same actions bit for bit and the generators left in the same states, so training is unchanged by it."""
+    generators = [torch.Generator().manual_seed(seed) for seed in range(num_seeds)]
+    actor = sac.Actor(OBS_DIM, SPACE, generators)
+    twins = [torch.Generator() for _ in generators]
+    for twin, generator in zip(twins, generators):
+        twin.set_state(generator.get_state())
+    obs = 3 * np.random.default_rng(0).standard_normal((num_seeds, OBS_DIM), dtype=np.float32)
+    acted = torch.stack([sac.noisy_action(obs, actor, generators) for _ in range(20)])
+    with torch.no_grad():
+        sampled = torch.stack([actor.get_action(torch.as_tensor(obs), twins)[0] for _ in range(20)])
+    assert torch.equal(acted, sampled) and acted.std(0).min() > 0  # every draw new, every one get_action's
+    assert all(torch.equal(g.get_state(), t.get_state()) for g, t in zip(generators, twins))
