@@ -254,7 +254,7 @@ def randn_like(x: torch.Tensor, generators: Optional[Sequence] = None) -> torch.
 @torch.no_grad()
 def noisy_action(obs, actor: Actor, generators=None) -> torch.Tensor:
     """Each seed's action (obs [num_seeds, obs_dim]) sampled from its policy: SAC explores with the policy's own randomness."""
-    return actor.sampled_action(torch.as_tensor(obs, device=actor.action_scale.device), generators)
+    return actor.sampled_action(to_device(obs, actor.action_scale.device), generators)
 
 
 def td_target(batch: Batch, actor: Actor, qf_target: QEnsemble, alpha: torch.Tensor, args: Args, generators=None):
@@ -767,6 +767,16 @@ class CudaGraph:
                 self.outputs[key] = self.fn(*self.inputs[key])
         self.graphs[key].replay()
         return self.outputs[key]
+
+
+def to_device(x, device: torch.device) -> torch.Tensor:
+    """x (an array or a tensor) on the device. To a GPU it goes through pinned memory without waiting for the GPU:
+    a copy from ordinary (pageable) memory first waits for every kernel queued, a replaying --cudagraphs update's
+    too, and only then could acting launch its kernels; this way they are queued behind the update while it runs."""
+    x = torch.as_tensor(x)
+    if device.type != "cuda" or x.is_cuda:
+        return x.to(device)
+    return x.pin_memory().to(device, non_blocking=True)  # the pinned block is kept until the copy has read it
 
 
 # Checkpoints: everything needed to continue a run exactly. An environment's state is its random generators and,

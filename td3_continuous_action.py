@@ -222,7 +222,7 @@ def randn_like(x: torch.Tensor, generators: Optional[Sequence] = None) -> torch.
 def noisy_action(obs, actor: Actor, exploration_noise: float, generators=None) -> torch.Tensor:
     """Each seed's action, obs [num_seeds, obs_dim] -> [num_seeds, action_dim], plus Gaussian noise of std
     exploration_noise * action_scale, clipped to the bounds."""
-    action = actor(torch.as_tensor(obs, device=actor.action_scale.device))
+    action = actor(to_device(obs, actor.action_scale.device))
     noise = randn_like(action, generators) * (actor.action_scale * exploration_noise)
     return (action + noise).clamp(actor.action_low, actor.action_high)
 
@@ -709,6 +709,16 @@ class CudaGraph:
                 self.outputs[key] = self.fn(*self.inputs[key])
         self.graphs[key].replay()
         return self.outputs[key]
+
+
+def to_device(x, device: torch.device) -> torch.Tensor:
+    """x (an array or a tensor) on the device. To a GPU it goes through pinned memory without waiting for the GPU:
+    a copy from ordinary (pageable) memory first waits for every kernel queued, a replaying --cudagraphs update's
+    too, and only then could acting launch its kernels; this way they are queued behind the update while it runs."""
+    x = torch.as_tensor(x)
+    if device.type != "cuda" or x.is_cuda:
+        return x.to(device)
+    return x.pin_memory().to(device, non_blocking=True)  # the pinned block is kept until the copy has read it
 
 
 # Checkpoints: everything needed to continue a run exactly. An environment's state is its random generators and,

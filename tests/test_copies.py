@@ -21,7 +21,7 @@ MACHINERY = {
     "check_finite", "log_scalars", "stop_non_finite", "CudaGraph", "CHECKPOINT", "RESUMABLE_FLAGS", "snapshot", "restore",
     "rng_state", "set_rng_state", "write_checkpoint", "load_checkpoint", "EpisodeRecord", "log_evaluation", "run_folders",
     "results", "seed_share", "PER_SEED", "split_seeds", "join_seeds", "write_checkpoints", "load_checkpoints", "save_models",
-    "restore_generators",
+    "restore_generators", "to_device",
 }  # fmt: skip
 # Definitions that differ between scripts by design, with the groups of scripts whose copies must still agree.
 # A script in no group joins the group of its nearest base that is in one (a fork of TD3 keeps TD3's Actor); one

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -120,6 +121,26 @@ def test_phase_times_charges_the_recorded_update_to_its_replay(script, tmp_path)
     syncs = next(line for line in result.stdout.splitlines() if line.startswith("(synchronised at every phase's"))
     assert float(syncs.split(": ")[1].split()[0]) >= 8  # acting, env, store, sample, replay: a start and an end each
     assert "| update: graph replay and input copies |" in result.stdout and "| update: critic |" not in result.stdout
+
+
+@pytest.mark.parametrize("script", OFF_POLICY)
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=needs_cuda)])
+def test_acting_sends_observations_to_the_device_without_waiting_for_it(script, device):
+    """to_device, acting's copy of the observations: the same values on the device; to a GPU without a host
+    synchronisation (a plain copy from pageable memory makes one, and waits there for a replaying update)."""
+    module = load(script)
+    obs = np.random.default_rng(0).standard_normal((3, 5), dtype=np.float32)
+    if device == "cuda":
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("error")  # any synchronising call below raises
+    try:
+        moved = module.to_device(obs, torch.device(device))
+        again = module.to_device(moved, torch.device(device))  # a tensor already there stays as it is
+    finally:
+        if device == "cuda":
+            torch.cuda.set_sync_debug_mode("default")
+    assert moved.device.type == device and moved.dtype == torch.float32 and again is moved
+    assert torch.equal(moved.cpu(), torch.from_numpy(obs))
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")

@@ -80,11 +80,13 @@ def test_scaling_stops_before_the_first_step_that_does_not_fit(tmp_path):
 
 def test_speed_runs_its_steps_without_cleanrl_and_without_mps(tmp_path):
     log, calls, mps = run_script(tmp_path, "gpu_speed.sh", first_step=2)
-    assert numbered_steps(log) == [2, 3, 4, 5, 6, 7]
+    assert numbered_steps(log) == [2, 3, 4, 5, 6, 7, 8, 9]
     assert any("no CleanRL folder" in line for line in log)
     phases = [c for c in calls if c.startswith("tools/phase_times.py")]
-    assert [c.split()[1] for c in phases] == ["td3", "oparl", "redq", "td3", "oparl"]
-    assert [("--no-sync" in c) for c in phases] == [False, False, False, True, True]
+    pairs = [script for script in ("td3", "oparl", "sac", "redq") for _ in range(2)]
+    assert [c.split()[1] for c in phases] == pairs + ["td3", "oparl", "redq"]
+    assert [("--no-sync" in c) for c in phases] == [True] * 8 + [False] * 3
+    assert [("--blocking-copy" in c) for c in phases] == [False, True] * 4 + [False] * 3  # each pair: now, then before
     speed = [c for c in calls if c.startswith("tools/throughput.py")]
     assert len(speed) == 1 and "dm_control/cartpole-swingup-v0" in speed[0] and "_continuous_action.py" not in speed[0]
     assert mps == []

@@ -202,7 +202,7 @@ def test_acting_samples_from_the_policy():
 
 
 @pytest.mark.parametrize("num_seeds", [1, 3])
-def test_acting_takes_get_actions_sampled_action_from_the_same_draws(num_seeds):
+def test_sampled_action_is_get_actions_bit_for_bit(num_seeds):
     """Acting skips the log-probability and deterministic action (sampled_action), yet acts and draws as get_action:
     the same actions bit for bit and the generators left in the same states, so training is unchanged by it."""
     generators = [torch.Generator().manual_seed(seed) for seed in range(num_seeds)]

@@ -251,14 +251,16 @@ def test_profile_run_attributes_samples_to_phases():
 
 
 def test_profile_run_charges_acting_under_no_grad_to_acting():
-    """py-spy puts torch.no_grad's wrapper between main and noisy_action (a stack as py-spy 0.4.3 reported it)."""
+    """py-spy puts torch.no_grad's wrapper between main and noisy_action, and a list comprehension's frame between
+    main and the random actions' Box.sample (Python 3.11; stacks as py-spy 0.4.3 reported them)."""
     phase_of = load_tool("profile_run").phase_of
     main = ["<module> (sac_continuous_action.py:1017)", "main (sac_continuous_action.py:439)"]
     no_grad = "context_decorator.<locals>.decorate_context (torch/utils/_contextlib.py:124)"
-    forward = ["Actor.get_action (sac_continuous_action.py:182)", "Module._call_impl (torch/nn/modules/module.py:1789)"]
+    forward = ["Actor.sampled_action (sac_continuous_action.py:195)", "Module._call_impl (torch/nn/modules/module.py:1789)"]
     for acting in ("noisy_action (sac_continuous_action.py:251)", "optimistic_action (oparl_continuous_action.py:300)"):
         assert phase_of([*main, no_grad, acting, *forward]) == "acting (actor forward, noise)"
-    assert phase_of([*main, "Box.sample (gymnasium/spaces/box.py:200)"]) == "acting (actor forward, noise)"
+    random = ["main.<locals>.<listcomp> (sac_continuous_action.py:436)", "Box.sample (gymnasium/spaces/box.py:200)"]
+    assert phase_of([*main, *random]) == "acting (actor forward, noise)"
     assert phase_of([*main, "ReplayBuffer.add (sac_continuous_action.py:220)"]) == "storing the transition"
     assert phase_of([*main, no_grad]) == "rest of the loop (Python, conversions, progress bar)"
 
@@ -326,6 +328,18 @@ def test_phase_times_table_of_a_real_run(tmp_path):
     assert calls["acting"] == 1 and calls["storing the transition"] == 1
     assert abs(sum(float(row["share"]) for row in rows) - 100) < 0.1 and float(rows[-1]["ms_per_step"]) >= 0
     assert {row["script"] for row in rows} == {"td3"} and all(row["timed_steps"] == "450" for row in rows)
+
+
+def test_phase_times_labels_a_blocking_copy_run(tmp_path):
+    """--blocking-copy (acting's copy as before 2026-11-26, for a comparison on a GPU) labels the run and its rows."""
+    flags = ["--env-id", "Pendulum-v1", "--learning-starts", "100", "--total-timesteps", "300", "--batch-size", "32"]
+    result = tool(
+        "phase_times.py", "sac", *flags, "--warmup-updates", "50", "--csv", str(tmp_path / "p.csv"), "--blocking-copy"
+    )
+    assert result.returncode == 0, result.stderr
+    assert f"sac {' '.join(flags)} (--blocking-copy): 150 training steps timed on cpu" in result.stdout
+    with open(tmp_path / "p.csv") as f:
+        assert {row["flags"] for row in csv.DictReader(f)} == {" ".join(flags) + " (--blocking-copy)"}
 
 
 @pytest.mark.parametrize(

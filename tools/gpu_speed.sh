@@ -3,10 +3,12 @@
 # 1. CleanRL's TD3 and SAC and our td3, sac, oparl and redq --cudagraphs on Hopper-v4, 3 repeats interleaved, each
 #    run timed by tools/throughput.py --window (one process start per run; CleanRL's cumulative charts/SPS is read
 #    by its events' times): $OUT/speed.csv;
-# 2-4. where a step's time goes in td3, oparl and redq --cudagraphs (tools/phase_times.py: each phase timed with
-#    the GPU synchronised at its start and end, so a graph's replay is charged its kernels): $OUT/phases.csv;
-# 5-6. td3 and oparl again without synchronising (--no-sync: the host's view);
-# 7. ours on cartpole-swingup (CleanRL's scripts do not run DeepMind Control tasks).
+# 2-5. td3, oparl, sac and redq --cudagraphs in the host's view (tools/phase_times.py --no-sync), each run with
+#    acting's copy of the observations as it is and as it was before 2026-11-26 (--blocking-copy, which waits
+#    for the replaying update): $OUT/phases.csv;
+# 6. ours on cartpole-swingup (CleanRL's scripts do not run DeepMind Control tasks);
+# 7-9. where a step's time goes in td3, oparl and redq --cudagraphs, each phase timed with the GPU synchronised at
+#    its start and end, so that a graph's replay is charged its kernels.
 # $OUT is, on the device machine, the folder that comes back (default here: gpu_out); $OUT/log.txt says what ran.
 # Step 1 needs about 510 s, a call of its own; the rest a second call, from the step the log says it stopped before:
 #     BUDGET=570 bash tools/gpu_speed.sh [FIRST_STEP]
@@ -33,15 +35,20 @@ phases() { # phases SCRIPT ENV_ID [STEPS [FLAGS]]: ms per training step by phase
     python tools/phase_times.py "$1" --env-id "$2" --cudagraphs --learning-starts 500 --total-timesteps "${3:-3000}" \
         --eval-frequency 1000000000 --eval-episodes 1 --warmup-updates 300 --csv "$OUT/phases.csv" "${@:4}"
 }
-export -f speed phases
+ab() { # ab SCRIPT [STEPS]: the host's view, acting's copy as it is, then as before 2026-11-26
+    phases "$1" Hopper-v4 "${2:-3000}" --no-sync && phases "$1" Hopper-v4 "${2:-3000}" --no-sync --blocking-copy
+}
+export -f speed phases ab
 
 [ -n "$CLEANRL" ] || echo "no CleanRL folder ($ASKED): our scripts only" | tee -a "$LOG"
 mps off   # one process at a time: no MPS (a daemon an earlier call of gpu_seed_scaling.sh left on is stopped)
 step 510 "speed Hopper-v4 3 cleanrl"
+step 60 "ab td3"
+step 60 "ab oparl"
+step 70 "ab sac"
+step 80 "ab redq 1500"
+step 240 "speed dm_control/cartpole-swingup-v0 3"
 step 30 "phases td3 Hopper-v4"
 step 30 "phases oparl Hopper-v4"
 step 40 "phases redq Hopper-v4 1500"
-step 30 "phases td3 Hopper-v4 3000 --no-sync"   # the host's view: a replay returns at once, acting waits for it
-step 30 "phases oparl Hopper-v4 3000 --no-sync"
-step 240 "speed dm_control/cartpole-swingup-v0 3"
 echo "done at ${SECONDS} s" | tee -a "$LOG"

@@ -10,7 +10,9 @@ shows up as waiting in the next step's acting (which is all py-spy, tools/profil
 synchronisations remove what little overlap of host and GPU the loop has and cost a few microseconds each (the
 tool prints how many a step made and what an idle one costs), so the total is a synchronised step, slower than
 tools/throughput.py's rates: compare phases within a table, and rates with throughput.py. --no-sync times the
-same phases without synchronising (the host's view). Time inside a phase's inner phases is charged to the inner
+same phases without synchronising (the host's view); with --blocking-copy acting copies the observations to the
+GPU as it did before 2026-11-26 (from pageable memory, which waits for the GPU to finish what is queued, a
+replaying update included), so that the two can be compared on one machine. Time inside a phase's inner phases is charged to the inner
 ones (each row is exclusive); evaluation is charged whole; "rest of the loop" is what no phase holds: Python,
 the progress bar, copying the actions to the host, and any GPU work left unsynchronised by then. The first
 --warmup-updates training steps (the first updates and, with --cudagraphs, the recordings) are not timed, nor is
@@ -19,7 +21,8 @@ anything from the last evaluation on. For example:
     python tools/phase_times.py td3 --env-id Hopper-v4 --cudagraphs --learning-starts 500 --total-timesteps 3000
     python tools/phase_times.py oparl --env-id Hopper-v4 --learning-starts 500 --total-timesteps 1500 --csv phases.csv
 
-Everything after the script's short name (and this tool's own flags: --warmup-updates N, --csv PATH, --no-sync)
+Everything after the script's short name (and this tool's own flags: --warmup-updates N, --csv PATH, --no-sync,
+--blocking-copy)
 is passed to the script; the run goes to a throw-away folder, with one torch thread unless OMP_NUM_THREADS says
 otherwise.
 """
@@ -201,18 +204,22 @@ def table(mark: dict) -> list:
 
 
 def parse(argv: list) -> tuple:
-    """(script, warm-up updates, CSV path or None, whether to synchronise, the script's own flags)."""
+    """(script, warm-up updates, CSV path or None, whether to synchronise, whether acting's copy blocks, the
+    script's own flags)."""
     if not argv or argv[0] in {"-h", "--help"}:
         sys.exit(__doc__)
     if argv[0] not in SCRIPTS:
         sys.exit(
-            f"error: usage: python tools/phase_times.py {{{','.join(SCRIPTS)}}} [--warmup-updates N] [--csv PATH] [--no-sync] [flags]"
+            f"error: usage: python tools/phase_times.py {{{','.join(SCRIPTS)}}} [--warmup-updates N] [--csv PATH] [--no-sync] "
+            "[--blocking-copy] [flags]"
         )
-    own, sync, script_argv, rest = {"--warmup-updates": "200", "--csv": None}, True, [], argv[1:]
+    own, sync, blocking, script_argv, rest = {"--warmup-updates": "200", "--csv": None}, True, False, [], argv[1:]
     while rest:
         word = rest.pop(0)
         if word == "--no-sync":
             sync = False
+        elif word == "--blocking-copy":
+            blocking = True
         elif word in own:
             if not rest:
                 sys.exit(f"error: {word} needs a value")
@@ -222,11 +229,11 @@ def parse(argv: list) -> tuple:
     warmup = own["--warmup-updates"]
     if not warmup.isdigit():
         sys.exit(f"error: --warmup-updates must be an integer >= 0, got {warmup}")
-    return argv[0], int(warmup), os.path.abspath(own["--csv"]) if own["--csv"] else None, sync, script_argv
+    return argv[0], int(warmup), os.path.abspath(own["--csv"]) if own["--csv"] else None, sync, blocking, script_argv
 
 
 def main(argv=None):
-    script, warmup, csv_path, sync, script_argv = parse(sys.argv[1:] if argv is None else list(argv))
+    script, warmup, csv_path, sync, blocking, script_argv = parse(sys.argv[1:] if argv is None else list(argv))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     sys.path.insert(0, REPO)
     name = f"{script}_continuous_action"
@@ -236,6 +243,8 @@ def main(argv=None):
     spec.loader.exec_module(module)
     import torch
 
+    if blocking:  # acting's copy of the observations as before 2026-11-26: from pageable memory, waiting for the GPU
+        module.to_device = lambda x, device: torch.as_tensor(x, device=device)
     threads = int(os.environ["OMP_NUM_THREADS"])
     torch.set_num_threads(threads)
     timer = PhaseTimer(cuda_sync) if sync else PhaseTimer()
@@ -254,7 +263,8 @@ def main(argv=None):
     rows = table(mark)
     on_gpu = torch.cuda.is_initialized()
     device = torch.cuda.get_device_name() if on_gpu else "cpu"
-    per_step, steps, flags = sum(ms for _, ms, _, _ in rows), mark["steps"], " ".join(script_argv)
+    flags = " ".join(script_argv + ["(--blocking-copy)"] * blocking)  # what the CSV's rows are labelled with
+    per_step, steps = sum(ms for _, ms, _, _ in rows), mark["steps"]
     how = "synchronised at every phase's start and end" if sync and on_gpu else "not synchronised"
     print(f"{script} {flags}: {steps} training steps timed on {device} ({threads} thread(s)), {per_step:.3f} ms a step")
     print(f"({how}: {mark['syncs'] / steps:.1f} device synchronisations a step", end="")

@@ -29,7 +29,8 @@ PHASES = [
     ("entropy (alpha) update", {"update_alpha"}),
     ("target networks (Polyak)", {"soft_update"}),
     ("evaluation", {"evaluate"}),
-    ("acting (actor forward, noise)", {"noisy_action", "optimistic_action"}),  # under @torch.no_grad's decorate_context
+    # acting, below torch.no_grad's decorate_context; random actions, below a list comprehension's frame
+    ("acting (actor forward, noise)", {"noisy_action", "optimistic_action", "Box.sample"}),
     ("storing the transition", {"ReplayBuffer.add"}),
     ("environment step", {"Wrapper.step", "TimeLimit.step", "OrderEnforcing.step", "PassiveEnvChecker.step"}),
     ("environment reset", {"Wrapper.reset", "TimeLimit.reset", "OrderEnforcing.reset", "PassiveEnvChecker.reset"}),
@@ -37,8 +38,6 @@ PHASES = [
     ("--cudagraphs: graph replay and its input copies", {"CudaGraph.__call__"}),  # warm-up calls: the phases above
     ("logging (TensorBoard)", {"SummaryWriter.add_scalar", "SummaryWriter.add_text"}),
 ]
-# what else main calls directly to pick an action (random actions before learning starts)
-ACTING = {"Module._wrapped_call_impl", "optimistic_action", "Actor.get_action", "Box.sample", "_clip", "Tensor.numpy"}
 STARTUP = {
     "Optimizer.__init__",
     "Adam.__init__",
@@ -62,8 +61,6 @@ def phase_of(stack: list) -> str:
         for phase, phase_names in PHASES:
             if name in phase_names:
                 return phase
-    if below_main and below_main[0] in ACTING:
-        return "acting (actor forward, noise)"
     return "rest of the loop (Python, conversions, progress bar)"
 
 
