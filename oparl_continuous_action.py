@@ -305,7 +305,7 @@ def optimistic_action(obs, optimistic_actor: Actor, qf: QEnsemble, num_candidate
     if num_candidates == 1:
         return candidates[:, 0]
     chosen = qf(obs.unsqueeze(-2).expand(-1, num_candidates, -1), candidates).std(-2).argmax(-1)
-    return candidates[torch.arange(len(candidates)), chosen]
+    return candidates[torch.arange(len(candidates), device=chosen.device), chosen]  # on the device: no host wait
 
 
 @torch.no_grad()
@@ -795,7 +795,9 @@ def to_device(x, device: torch.device) -> torch.Tensor:
     x = torch.as_tensor(x)
     if device.type != "cuda" or x.is_cuda:
         return x.to(device)
-    return x.pin_memory().to(device, non_blocking=True)  # the pinned block is kept until the copy has read it
+    # pin_memory copies x (an already pinned x it returns as it is, which must then not change until the copy
+    # has read it); the pinned block is not reused before that
+    return x.pin_memory().to(device, non_blocking=True)
 
 
 # Checkpoints: everything needed to continue a run exactly. An environment's state is its random generators and,

@@ -718,7 +718,9 @@ def to_device(x, device: torch.device) -> torch.Tensor:
     x = torch.as_tensor(x)
     if device.type != "cuda" or x.is_cuda:
         return x.to(device)
-    return x.pin_memory().to(device, non_blocking=True)  # the pinned block is kept until the copy has read it
+    # pin_memory copies x (an already pinned x it returns as it is, which must then not change until the copy
+    # has read it); the pinned block is not reused before that
+    return x.pin_memory().to(device, non_blocking=True)
 
 
 # Checkpoints: everything needed to continue a run exactly. An environment's state is its random generators and,

@@ -126,13 +126,23 @@ def test_phase_times_charges_the_recorded_update_to_its_replay(script, tmp_path)
 @pytest.mark.parametrize("script", OFF_POLICY)
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=needs_cuda)])
 def test_acting_sends_observations_to_the_device_without_waiting_for_it(script, device):
-    """to_device, acting's copy of the observations: the same values on the device; to a GPU without a host
-    synchronisation (a plain copy from pageable memory makes one, and waits there for a replaying update)."""
+    """to_device, acting's copy of the observations: the same values on the device; to a GPU without waiting for
+    the work queued before it (as a replaying update): the GPU is still busy when it returns, where a plain copy
+    from pageable memory (the control) returns only once the GPU is idle."""
     module = load(script)
     obs = np.random.default_rng(0).standard_normal((3, 5), dtype=np.float32)
     if device == "cuda":
+        module.to_device(obs, torch.device(device))  # the first pinned block is allocated before timing starts
+        for copy, waits in [
+            (lambda: torch.as_tensor(obs, device=device), True),
+            (lambda: module.to_device(obs, torch.device(device)), False),
+        ]:
+            torch.cuda.synchronize()
+            torch.cuda._sleep(100_000_000)  # a kernel that keeps the GPU busy for tens of milliseconds
+            copy()
+            assert torch.cuda.current_stream().query() == waits  # query(): whether everything queued has finished
         torch.cuda.synchronize()
-        torch.cuda.set_sync_debug_mode("error")  # any synchronising call below raises
+        torch.cuda.set_sync_debug_mode("error")  # and no synchronisation that torch's sync debug mode sees
     try:
         moved = module.to_device(obs, torch.device(device))
         again = module.to_device(moved, torch.device(device))  # a tensor already there stays as it is

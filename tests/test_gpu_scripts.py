@@ -83,10 +83,10 @@ def test_speed_runs_its_steps_without_cleanrl_and_without_mps(tmp_path):
     assert numbered_steps(log) == [2, 3, 4, 5, 6, 7, 8, 9]
     assert any("no CleanRL folder" in line for line in log)
     phases = [c for c in calls if c.startswith("tools/phase_times.py")]
-    pairs = [script for script in ("td3", "oparl", "sac", "redq") for _ in range(2)]
+    pairs = [script for script in ("td3", "oparl", "sac", "redq") for _ in range(4)]
     assert [c.split()[1] for c in phases] == pairs + ["td3", "oparl", "redq"]
-    assert [("--no-sync" in c) for c in phases] == [True] * 8 + [False] * 3
-    assert [("--blocking-copy" in c) for c in phases] == [False, True] * 4 + [False] * 3  # each pair: now, then before
+    assert [("--no-sync" in c) for c in phases] == [True] * 16 + [False] * 3
+    assert [("--blocking-copy" in c) for c in phases] == [False, True, True, False] * 4 + [False] * 3  # A B B A
     speed = [c for c in calls if c.startswith("tools/throughput.py")]
     assert len(speed) == 1 and "dm_control/cartpole-swingup-v0" in speed[0] and "_continuous_action.py" not in speed[0]
     assert mps == []

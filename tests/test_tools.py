@@ -331,11 +331,10 @@ def test_phase_times_table_of_a_real_run(tmp_path):
 
 
 def test_phase_times_labels_a_blocking_copy_run(tmp_path):
-    """--blocking-copy (acting's copy as before 2026-11-26, for a comparison on a GPU) labels the run and its rows."""
+    """--blocking-copy (acting's copy as before commit e4d8b37, for a comparison on a GPU) labels the run and its rows."""
     flags = ["--env-id", "Pendulum-v1", "--learning-starts", "100", "--total-timesteps", "300", "--batch-size", "32"]
-    result = tool(
-        "phase_times.py", "sac", *flags, "--warmup-updates", "50", "--csv", str(tmp_path / "p.csv"), "--blocking-copy"
-    )
+    own = ["--warmup-updates", "50", "--csv", str(tmp_path / "p.csv"), "--no-sync", "--blocking-copy"]
+    result = tool("phase_times.py", "sac", *flags, *own)
     assert result.returncode == 0, result.stderr
     assert f"sac {' '.join(flags)} (--blocking-copy): 150 training steps timed on cpu" in result.stdout
     with open(tmp_path / "p.csv") as f:
@@ -348,6 +347,7 @@ def test_phase_times_labels_a_blocking_copy_run(tmp_path):
         (["ppo"], "error: usage: python tools/phase_times.py {td3,sac,oparl,redq}"),
         (["td3", "--warmup-updates", "-1"], "error: --warmup-updates must be an integer >= 0, got -1"),
         (["td3", "--csv"], "error: --csv needs a value"),
+        (["td3", "--blocking-copy"], "error: --blocking-copy changes only what the host waits for: give --no-sync with it"),
         (
             ["td3", "--env-id", "Pendulum-v1", "--total-timesteps", "300", "--learning-starts", "100", "--batch-size", "32"],
             "error: no training step",

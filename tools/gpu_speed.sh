@@ -3,14 +3,16 @@
 # 1. CleanRL's TD3 and SAC and our td3, sac, oparl and redq --cudagraphs on Hopper-v4, 3 repeats interleaved, each
 #    run timed by tools/throughput.py --window (one process start per run; CleanRL's cumulative charts/SPS is read
 #    by its events' times): $OUT/speed.csv;
-# 2-5. td3, oparl, sac and redq --cudagraphs in the host's view (tools/phase_times.py --no-sync), each run with
-#    acting's copy of the observations as it is and as it was before 2026-11-26 (--blocking-copy, which waits
-#    for the replaying update): $OUT/phases.csv;
+# 2-5. td3, oparl, sac and redq --cudagraphs in the host's view (tools/phase_times.py --no-sync), with acting's copy
+#    of the observations as it is and as it was before commit e4d8b37 (--blocking-copy, which waits for the
+#    replaying update), four runs in the order now, before, before, now: compare their whole step (the wait moves
+#    between phases): $OUT/phases.csv;
 # 6. ours on cartpole-swingup (CleanRL's scripts do not run DeepMind Control tasks);
 # 7-9. where a step's time goes in td3, oparl and redq --cudagraphs, each phase timed with the GPU synchronised at
 #    its start and end, so that a graph's replay is charged its kernels.
 # $OUT is, on the device machine, the folder that comes back (default here: gpu_out); $OUT/log.txt says what ran.
-# Step 1 needs about 510 s, a call of its own; the rest a second call, from the step the log says it stopped before:
+# Step 1 needs about 510 s, a call of its own; steps 2-5 about 280 s (BUDGET=300 stops after them), 6-9 about 340 s;
+# each call starts from the step the log says the last one stopped before:
 #     BUDGET=570 bash tools/gpu_speed.sh [FIRST_STEP]
 # CLEANRL (default .cleanrl): a folder holding CleanRL's cleanrl/{td3,sac}_continuous_action.py and cleanrl_utils/
 # at the commit docs/speed.md names, e.g. `mkdir .cleanrl && git -C ../cleanrl archive fe8d8a0
@@ -35,8 +37,11 @@ phases() { # phases SCRIPT ENV_ID [STEPS [FLAGS]]: ms per training step by phase
     python tools/phase_times.py "$1" --env-id "$2" --cudagraphs --learning-starts 500 --total-timesteps "${3:-3000}" \
         --eval-frequency 1000000000 --eval-episodes 1 --warmup-updates 300 --csv "$OUT/phases.csv" "${@:4}"
 }
-ab() { # ab SCRIPT [STEPS]: the host's view, acting's copy as it is, then as before 2026-11-26
-    phases "$1" Hopper-v4 "${2:-3000}" --no-sync && phases "$1" Hopper-v4 "${2:-3000}" --no-sync --blocking-copy
+ab() { # ab SCRIPT [STEPS]: the host's view, acting's copy as it is (A) and as before (B), in the order A B B A
+    local run
+    for run in "" --blocking-copy --blocking-copy ""; do
+        phases "$1" Hopper-v4 "${2:-1500}" --no-sync $run || return
+    done
 }
 export -f speed phases ab
 
@@ -45,8 +50,8 @@ mps off   # one process at a time: no MPS (a daemon an earlier call of gpu_seed_
 step 510 "speed Hopper-v4 3 cleanrl"
 step 60 "ab td3"
 step 60 "ab oparl"
-step 70 "ab sac"
-step 80 "ab redq 1500"
+step 60 "ab sac"
+step 100 "ab redq 1100"
 step 240 "speed dm_control/cartpole-swingup-v0 3"
 step 30 "phases td3 Hopper-v4"
 step 30 "phases oparl Hopper-v4"

@@ -10,9 +10,10 @@ shows up as waiting in the next step's acting (which is all py-spy, tools/profil
 synchronisations remove what little overlap of host and GPU the loop has and cost a few microseconds each (the
 tool prints how many a step made and what an idle one costs), so the total is a synchronised step, slower than
 tools/throughput.py's rates: compare phases within a table, and rates with throughput.py. --no-sync times the
-same phases without synchronising (the host's view); with --blocking-copy acting copies the observations to the
-GPU as it did before 2026-11-26 (from pageable memory, which waits for the GPU to finish what is queued, a
-replaying update included), so that the two can be compared on one machine. Time inside a phase's inner phases is charged to the inner
+same phases without synchronising (the host's view); with --no-sync --blocking-copy acting copies the
+observations to the GPU as it did before commit e4d8b37 (from pageable memory, which waits for the GPU to finish
+what is queued, a replaying update included), so that the two can be compared on one machine: compare their whole
+step, since the wait moves between phases (acting's copy, or the action's copy back in "rest of the loop"). Time inside a phase's inner phases is charged to the inner
 ones (each row is exclusive); evaluation is charged whole; "rest of the loop" is what no phase holds: Python,
 the progress bar, copying the actions to the host, and any GPU work left unsynchronised by then. The first
 --warmup-updates training steps (the first updates and, with --cudagraphs, the recordings) are not timed, nor is
@@ -226,6 +227,8 @@ def parse(argv: list) -> tuple:
             own[word] = rest.pop(0)
         else:
             script_argv.append(word)
+    if blocking and sync:
+        sys.exit("error: --blocking-copy changes only what the host waits for: give --no-sync with it")
     warmup = own["--warmup-updates"]
     if not warmup.isdigit():
         sys.exit(f"error: --warmup-updates must be an integer >= 0, got {warmup}")
@@ -243,7 +246,7 @@ def main(argv=None):
     spec.loader.exec_module(module)
     import torch
 
-    if blocking:  # acting's copy of the observations as before 2026-11-26: from pageable memory, waiting for the GPU
+    if blocking:  # acting's copy of the observations as before commit e4d8b37: from pageable memory, waiting for the GPU
         module.to_device = lambda x, device: torch.as_tensor(x, device=device)
     threads = int(os.environ["OMP_NUM_THREADS"])
     torch.set_num_threads(threads)
