@@ -484,6 +484,9 @@ def test_welch_compares_final_returns_task_by_task(tmp_path):
     va, vb = np.var(a, ddof=1) / 3, np.var(b, ddof=1) / 3
     assert float(cells[5]) == pytest.approx((va + vb) ** 2 / (va**2 / 2 + vb**2 / 2), abs=0.05)  # Welch-Satterthwaite
     assert cells[7] == "9/9"  # every run of x above every run of y
+    df = (va + vb) ** 2 / (va**2 / 2 + vb**2 / 2)
+    half = stats.t.ppf(0.975, df) * np.sqrt(va + vb)  # the 95% interval: difference +- t(0.975, df) * its standard error
+    assert cells[8] == f"{59.0 - half:+.1f} to {59.0 + half:+.1f}" == "+25.9 to +92.1"
     overlap = next(line for line in result.stdout.splitlines() if line.startswith("| overlap |"))
     assert overlap.strip("|").split("|")[7].strip() == "4/9"  # 5 > 2, 9 > 2, 5, 8; the tie 5 = 5 counts for neither
     assert "only_x" not in result.stdout
@@ -529,6 +532,8 @@ def test_welch_paired_matches_runs_by_seed_and_pooled_arms_by_precedence(tmp_pat
     cells = [c.strip() for c in line.strip("|").split("|")]
     x, yz = [10, 20, 35, 40], [8, 21, 30, 40]  # seeds 1, 2, 3, 5; seed 10 has no partner, seed 4 no x run
     assert cells[1] == "4" and cells[4] == "+1.5 +- 2.6" and cells[7] == "2/4"  # d = 2, -1, 5, 0: sample SD; a tie: neither
+    half = stats.t.ppf(0.975, 3) * np.std([2, -1, 5, 0], ddof=1) / 2  # t(0.975, n - 1) * sd / sqrt(n)
+    assert cells[8] == f"{1.5 - half:+.1f} to {1.5 + half:+.1f}" == "-2.7 to +5.7"
     assert float(cells[6]) == pytest.approx(stats.ttest_rel(x, yz).pvalue, abs=0.001)
     refused = tool("welch.py", str(path), "y", "z", "--paired")  # one seed in common
     assert refused.returncode != 0 and "at least two seeds" in refused.stderr.strip().splitlines()[-1]

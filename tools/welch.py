@@ -6,9 +6,10 @@ plot_results.py wrote (one row per run: algo, env_id, seed, steps, final_return)
     python tools/welch.py results/many_seeds/eval_series.csv td3_x3 td3_1x --steps 50000 100000
 
 prints a markdown table: each task both algorithms ran, the runs of each, their mean and standard deviation,
-the difference of the means, Welch's t, its degrees of freedom, the two-sided p-value (unequal variances), and
-in how many of the (a run, b run) pairs a's run is higher (a tie counts for neither; with 3 runs each and no
-ties, 9/9 happens one time in twenty for two equal algorithms).
+the difference of the means, Welch's t, its degrees of freedom, the two-sided p-value (unequal variances), in
+how many of the (a run, b run) pairs a's run is higher (a tie counts for neither; with 3 runs each and no
+ties, 9/9 happens one time in twenty for two equal algorithms), and the 95% confidence interval of the
+difference: the differences the runs do not rule out, which a p-value alone does not say.
 With an eval_series.csv (plot_results.py's: algo, env_id, seed, step, episodic_return) and --steps LO HI, a
 run's value is the mean of its evaluations from step LO to step HI (both included) instead of its final one.
 With three runs a side the test only sees large differences; a high p-value is no evidence of equality.
@@ -51,7 +52,8 @@ def by_seed(path: str, steps=None) -> dict:
 
 
 def paired_table(runs: dict, a: str, b: str) -> list:
-    """One row per task: (env_id, pairs, mean of a, mean of b, mean and std of a - b, t, p, pairs where a is higher)."""
+    """One row per task: (env_id, pairs, mean of a, mean of b, mean and std of a - b, t, p, pairs where a is higher,
+    and the 95% confidence interval of the mean difference, low and high)."""
     rows = []
     for env_id in sorted({env for algo, env in runs if algo == a}):
         b_runs = {}
@@ -61,25 +63,31 @@ def paired_table(runs: dict, a: str, b: str) -> list:
         if len(seeds) < 2:
             continue
         x, y = np.array([runs[a, env_id][s] for s in seeds]), np.array([b_runs[s] for s in seeds])
-        t, p = stats.ttest_rel(x, y)
-        d = x - y
-        rows.append((env_id, len(seeds), x.mean(), y.mean(), d.mean(), d.std(ddof=1), float(t), float(p), int((d > 0).sum())))
+        test = stats.ttest_rel(x, y)
+        d, ci = x - y, test.confidence_interval(0.95)
+        higher = int((d > 0).sum())
+        rows.append(
+            (env_id, len(seeds), x.mean(), y.mean(), d.mean(), d.std(ddof=1), *map(float, test), higher, *map(float, ci))
+        )
     return rows
 
 
 def welch_table(runs: dict, a: str, b: str) -> list:
-    """One row per task both ran: (env_id, n_a, mean_a, std_a, n_b, mean_b, std_b, t, df, p, above), `above` the
-    number of (a run, b run) pairs in which a's run is higher (all n_a * n_b of them: a's every run above b's every one)."""
+    """One row per task both ran: (env_id, n_a, mean_a, std_a, n_b, mean_b, std_b, t, df, p, above, low, high), `above`
+    the number of (a run, b run) pairs in which a's run is higher (all n_a * n_b of them: a's every run above b's
+    every one), low and high the 95% confidence interval of mean_a - mean_b (Welch's)."""
     rows = []
     for env_id in sorted({env for algo, env in runs if algo == a} & {env for algo, env in runs if algo == b}):
         x, y = np.array(runs[a, env_id]), np.array(runs[b, env_id])
         if len(x) < 2 or len(y) < 2:
             continue
-        t, p = stats.ttest_ind(x, y, equal_var=False)
+        test = stats.ttest_ind(x, y, equal_var=False)
+        (t, p), ci = test, test.confidence_interval(0.95)
         vx, vy = x.var(ddof=1) / len(x), y.var(ddof=1) / len(y)
         df = (vx + vy) ** 2 / (vx**2 / (len(x) - 1) + vy**2 / (len(y) - 1)) if vx + vy > 0 else float("nan")
         above = int((x[:, None] > y[None, :]).sum())
-        rows.append((env_id, len(x), x.mean(), x.std(ddof=1), len(y), y.mean(), y.std(ddof=1), float(t), df, float(p), above))
+        stats_ = (float(t), df, float(p), above, float(ci.low), float(ci.high))
+        rows.append((env_id, len(x), x.mean(), x.std(ddof=1), len(y), y.mean(), y.std(ddof=1), *stats_))
     return rows
 
 
@@ -114,13 +122,14 @@ def main(argv=None):
     if not rows:
         sys.exit(f"error: no task with at least two runs of both {args.a!r} and {args.b!r}")
     print(
-        f"| task | {args.a} (n, mean +- std) | {args.b} (n, mean +- std) | difference | Welch t | df | p | {args.a} above (ties: neither) |"
+        f"| task | {args.a} (n, mean +- std) | {args.b} (n, mean +- std) | difference | Welch t | df | p | {args.a} above (ties: neither)"
+        " | 95% CI of the difference |"
     )
-    print("|---|---|---|---|---|---|---|---|")
-    for env_id, na, ma, sa, nb, mb, sb, t, df, p, above in rows:
+    print("|---|---|---|---|---|---|---|---|---|")
+    for env_id, na, ma, sa, nb, mb, sb, t, df, p, above, low, high in rows:
         print(
             f"| {env_id} | {na}, {ma:.1f} +- {sa:.1f} | {nb}, {mb:.1f} +- {sb:.1f} | {ma - mb:+.1f} | {t:.2f} | {df:.1f} | {p:.3f}"
-            f" | {above}/{na * nb} |"
+            f" | {above}/{na * nb} | {low:+.1f} to {high:+.1f} |"
         )
     return rows
 
@@ -130,11 +139,15 @@ def print_paired(args, runs: dict) -> list:
     if not rows:
         sys.exit(f"error: no task with at least two seeds that both {args.a!r} and {args.b!r} ran")
     print(
-        f"| task | seeds | {args.a} mean | {args.b} mean | difference (mean +- std over seeds) | paired t | p | {args.a} higher |"
+        f"| task | seeds | {args.a} mean | {args.b} mean | difference (mean +- std over seeds) | paired t | p | {args.a} higher"
+        " | 95% CI of the difference |"
     )
-    print("|---|---|---|---|---|---|---|---|")
-    for env_id, n, ma, mb, md, sd, t, p, higher in rows:
-        print(f"| {env_id} | {n} | {ma:.1f} | {mb:.1f} | {md:+.1f} +- {sd:.1f} | {t:.2f} | {p:.3f} | {higher}/{n} |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for env_id, n, ma, mb, md, sd, t, p, higher, low, high in rows:
+        cells = (
+            f"{n} | {ma:.1f} | {mb:.1f} | {md:+.1f} +- {sd:.1f} | {t:.2f} | {p:.3f} | {higher}/{n} | {low:+.1f} to {high:+.1f}"
+        )
+        print(f"| {env_id} | {cells} |")
     return rows
 
 
