@@ -13,9 +13,10 @@ tools/throughput.py's rates: compare phases within a table, and rates with throu
 same phases without synchronising (the host's view); with --no-sync --blocking-copy acting copies the
 observations to the GPU as it did before commit e4d8b37 (from pageable memory, which waits for the GPU to finish
 what is queued, a replaying update included), so that the two can be compared on one machine: compare their whole
-step, since the wait moves between phases (acting's copy, or the action's copy back in "rest of the loop"). Time inside a phase's inner phases is charged to the inner
-ones (each row is exclusive); evaluation is charged whole; "rest of the loop" is what no phase holds: Python,
-the progress bar, copying the actions to the host, and any GPU work left unsynchronised by then. The first
+step, since the wait moves between phases (acting's copy, or the action's copy back in "rest of the loop").
+Time inside a phase's inner phases is charged to the inner ones (each row is exclusive); evaluation is charged
+whole; "rest of the loop" is what no phase holds: Python, the progress bar, copying the actions to the host,
+and any GPU work left unsynchronised by then. The first
 --warmup-updates training steps (the first updates and, with --cudagraphs, the recordings) are not timed, nor is
 anything from the last evaluation on. For example:
 
