@@ -341,6 +341,28 @@ def test_phase_times_labels_a_blocking_copy_run(tmp_path):
         assert {row["flags"] for row in csv.DictReader(f)} == {" ".join(flags) + " (--blocking-copy)"}
 
 
+def test_phase_times_summary_adds_each_runs_phases_and_compares_the_copies(tmp_path):
+    """--summary: a run is its consecutive rows up to a phase seen again (two runs with the same flags back to back
+    stay two), its step is the sum of its phases, and a script's mean is compared with its --blocking-copy runs'."""
+    fields, flags = load_tool("phase_times").CSV_FIELDS, "--env-id Hopper-v4"
+    runs = [("td3", flags, [0.5, 0.5]), ("td3", flags, [0.4, 0.6]), ("td3", flags + " (--blocking-copy)", [1.0, 1.5])]
+    runs += [("td3", flags + " (--blocking-copy)", [1.0, 0.5]), ("sac", flags, [2.0, 1.0])]
+    with open(tmp_path / "a.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(fields)
+        for script, label, (acting, rest) in runs:
+            for phase, ms in (("acting", acting), ("rest of the loop", rest)):
+                writer.writerow([script, label, "gpu", 1, False, 100, phase, ms, 50, 1])
+    result = tool("phase_times.py", "--summary", str(tmp_path / "a.csv"))
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert f"| td3 | {flags} | gpu | False | 1.000, 1.000 | 1.000 | -1.000 (-50.0%) |" in lines
+    assert f"| td3 | {flags} (--blocking-copy) | gpu | False | 2.500, 1.500 | 2.000 |  |" in lines
+    assert f"| sac | {flags} | gpu | False | 3.000 | 3.000 |  |" in lines and len(lines) == 5
+    bad = tool("phase_times.py", "--summary", str(tmp_path / "missing.csv"))
+    assert bad.returncode != 0 and bad.stderr.strip().startswith("error: cannot read"), bad.stderr
+
+
 @pytest.mark.parametrize(
     "flags,error",
     [

@@ -26,7 +26,9 @@ anything from the last evaluation on. For example:
 Everything after the script's short name (and this tool's own flags: --warmup-updates N, --csv PATH, --no-sync,
 --blocking-copy)
 is passed to the script; the run goes to a throw-away folder, with one torch thread unless OMP_NUM_THREADS says
-otherwise.
+otherwise. `python tools/phase_times.py --summary phases.csv [more.csv ...]` reads what --csv wrote and prints each
+run's whole step (the sum of its phases) by script and flags, their mean, and, where a script has runs with and
+without --blocking-copy under the same flags, the difference of the means.
 """
 
 import collections
@@ -236,8 +238,59 @@ def parse(argv: list) -> tuple:
     return argv[0], int(warmup), os.path.abspath(own["--csv"]) if own["--csv"] else None, sync, blocking, script_argv
 
 
+def runs_of(paths: list) -> list:
+    """The runs in phases CSVs, in order, as ((script, flags, device, synchronised), ms a whole step): a run's rows
+    are consecutive and name each phase once, so a run ends where its key changes or a phase comes again."""
+    runs, seen = [], set()
+    for path in paths:
+        try:
+            with open(path, newline="") as f:
+                rows = list(csv.DictReader(f))
+        except OSError as e:
+            sys.exit(f"error: cannot read {path}: {e.strerror}")
+        if rows and not set(CSV_FIELDS) <= set(rows[0]):
+            sys.exit(f"error: {path} is not a CSV that tools/phase_times.py --csv wrote")
+        seen = set()
+        for row in rows:
+            key = (row["script"], row["flags"], row["device"], row["synchronised"])
+            if not runs or runs[-1][0] != key or row["phase"] in seen:
+                runs.append([key, 0.0])
+                seen = set()
+            seen.add(row["phase"])
+            runs[-1][1] += float(row["ms_per_step"])
+    return [tuple(run) for run in runs]
+
+
+def summary(paths: list) -> None:
+    """Prints every run's whole step by (script, flags), the mean, and the mean's change from --blocking-copy."""
+    groups = collections.defaultdict(list)
+    for key, ms in runs_of(paths):
+        groups[key].append(ms)
+    if not groups:
+        sys.exit("error: no rows in " + " ".join(paths))
+    label = " (--blocking-copy)"
+    print("| script | flags | device | synchronised | ms a step, each run | mean | vs --blocking-copy |")
+    print("|---|---|---|---|---|---|---|")
+    for key, values in groups.items():
+        script, flags, device, synchronised = key
+        mean = sum(values) / len(values)
+        before = groups.get((script, flags + label, device, synchronised))
+        change = (
+            ""
+            if before is None
+            else f"{mean - sum(before) / len(before):+.3f} ({mean / (sum(before) / len(before)) - 1:+.1%})"
+        )
+        each = ", ".join(f"{v:.3f}" for v in values)
+        print(f"| {script} | {flags} | {device} | {synchronised} | {each} | {mean:.3f} | {change} |")
+
+
 def main(argv=None):
-    script, warmup, csv_path, sync, blocking, script_argv = parse(sys.argv[1:] if argv is None else list(argv))
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["--summary"]:
+        if len(argv) < 2:
+            sys.exit("error: --summary needs the CSV files that --csv wrote")
+        return summary(argv[1:])
+    script, warmup, csv_path, sync, blocking, script_argv = parse(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     sys.path.insert(0, REPO)
     name = f"{script}_continuous_action"
