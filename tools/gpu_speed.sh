@@ -11,7 +11,7 @@
 # 7-9. where a step's time goes in td3, oparl and redq --cudagraphs, each phase timed with the GPU synchronised at
 #    its start and end, so that a graph's replay is charged its kernels.
 # $OUT is, on the device machine, the folder that comes back (default here: gpu_out); $OUT/log.txt says what ran.
-# Step 1 needs about 510 s, a call of its own; steps 2-5 about 280 s (BUDGET=300 stops after them), 6-9 about 340 s;
+# Measured on an H200 (2026-11-26): step 1 took 359 s (budgeted 400), steps 2-5 46, 53, 54 and 74 s; 6-9 need about 340 s;
 # each call starts from the step the log says the last one stopped before:
 #     BUDGET=570 bash tools/gpu_speed.sh [FIRST_STEP]
 # CLEANRL (default .cleanrl): a folder holding CleanRL's cleanrl/{td3,sac}_continuous_action.py and cleanrl_utils/
@@ -47,7 +47,7 @@ export -f speed phases ab
 
 [ -n "$CLEANRL" ] || echo "no CleanRL folder ($ASKED): our scripts only" | tee -a "$LOG"
 mps off   # one process at a time: no MPS (a daemon an earlier call of gpu_seed_scaling.sh left on is stopped)
-step 510 "speed Hopper-v4 3 cleanrl"
+step 400 "speed Hopper-v4 3 cleanrl"
 step 60 "ab td3"
 step 60 "ab oparl"
 step 60 "ab sac"
