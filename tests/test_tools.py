@@ -341,24 +341,70 @@ def test_phase_times_labels_a_blocking_copy_run(tmp_path):
         assert {row["flags"] for row in csv.DictReader(f)} == {" ".join(flags) + " (--blocking-copy)"}
 
 
-def test_phase_times_summary_adds_each_runs_phases_and_compares_the_copies(tmp_path):
-    """--summary: a run is its consecutive rows up to a phase seen again (two runs with the same flags back to back
-    stay two), its step is the sum of its phases, and a script's mean is compared with its --blocking-copy runs'."""
-    fields, flags = load_tool("phase_times").CSV_FIELDS, "--env-id Hopper-v4"
-    runs = [("td3", flags, [0.5, 0.5]), ("td3", flags, [0.4, 0.6]), ("td3", flags + " (--blocking-copy)", [1.0, 1.5])]
-    runs += [("td3", flags + " (--blocking-copy)", [1.0, 0.5]), ("sac", flags, [2.0, 1.0])]
-    with open(tmp_path / "a.csv", "w", newline="") as f:
+def write_phases(path, runs):
+    """A phases CSV as --csv writes it: per run (script, flags, [ms of each phase]), phases named in order, the last
+    one "rest of the loop"."""
+    names = ["acting", "environment step", "replay sampling"]
+    with open(path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(fields)
-        for script, label, (acting, rest) in runs:
-            for phase, ms in (("acting", acting), ("rest of the loop", rest)):
-                writer.writerow([script, label, "gpu", 1, False, 100, phase, ms, 50, 1])
-    result = tool("phase_times.py", "--summary", str(tmp_path / "a.csv"))
+        writer.writerow(load_tool("phase_times").CSV_FIELDS)
+        for script, label, ms in runs:
+            for phase, value in zip(names[: len(ms) - 1] + ["rest of the loop"], ms):
+                writer.writerow([script, label, "gpu", 1, False, 100, phase, value, 50, 1])
+
+
+def test_phase_times_summary_adds_each_runs_phases_and_compares_the_copies(tmp_path):
+    """--summary: a run is its rows up to its "rest of the loop" row, within one file (runs with the same flags back
+    to back, or ending one file and starting the next, stay apart), its step is the sum of its phases, and a script's
+    mean is compared with that of its --blocking-copy runs under the same flags (none at all included)."""
+    flags = "--env-id Hopper-v4"
+    runs = [("td3", flags, [0.5, 0.5]), ("td3", flags, [0.4, 0.6]), ("td3", flags + " (--blocking-copy)", [1.0, 1.5])]
+    runs += [("td3", flags + " (--blocking-copy)", [1.0, 0.2, 0.3]), ("sac", flags, [2.0, 1.0])]
+    write_phases(tmp_path / "a.csv", runs + [("sac", "", [1.0, 1.0])])
+    write_phases(tmp_path / "b.csv", [("sac", "", [0.5, 0.5]), ("sac", "(--blocking-copy)", [3.0, 1.0])])
+    result = tool("phase_times.py", "--summary", str(tmp_path / "a.csv"), str(tmp_path / "b.csv"))
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
-    assert f"| td3 | {flags} | gpu | False | 1.000, 1.000 | 1.000 | -1.000 (-50.0%) |" in lines
-    assert f"| td3 | {flags} (--blocking-copy) | gpu | False | 2.500, 1.500 | 2.000 |  |" in lines
-    assert f"| sac | {flags} | gpu | False | 3.000 | 3.000 |  |" in lines and len(lines) == 5
+    assert f"| td3 | {flags} | gpu | 1 | False | 100 | 1.000, 1.000 | 1.000 | -1.000 (-50.0%) |" in lines
+    assert f"| td3 | {flags} (--blocking-copy) | gpu | 1 | False | 100 | 2.500, 1.500 | 2.000 |  |" in lines
+    assert f"| sac | {flags} | gpu | 1 | False | 100 | 3.000 | 3.000 |  |" in lines
+    assert "| sac |  | gpu | 1 | False | 100 | 2.000, 1.000 | 1.500 | -2.500 (-62.5%) |" in lines and len(lines) == 7
+
+
+@pytest.mark.parametrize(
+    "rows,error",
+    [
+        ([("td3", "", [1.0, 1.0]), ("sac", "", [1.0])], None),  # a well-formed pair, the control
+        ([("td3", "", [1.0, 1.0, 1.0])], "ends inside a run"),  # no "rest of the loop" row: cut off
+        ([("td3", "", [1.0, 1.0]), ("phase", "", ["ms"])], "not a phase row"),  # a header in the middle
+    ],
+)
+def test_phase_times_summary_refuses_a_cut_off_run_in_one_line(tmp_path, rows, error):
+    path = tmp_path / "p.csv"
+    if error == "ends inside a run":
+        write_phases(path, [("td3", "", [1.0, 1.0])])
+        with open(path) as f:
+            kept = f.read().splitlines()[:-1]  # the run loses its "rest of the loop" row
+        path.write_text("\n".join(kept) + "\n")
+    else:
+        write_phases(path, rows)
+    result = tool("phase_times.py", "--summary", str(path))
+    if error is None:
+        assert result.returncode == 0, result.stderr
+    else:
+        assert result.returncode != 0 and result.stderr.strip().startswith("error: ") and error in result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def test_phase_times_summary_refuses_a_run_whose_key_changes_before_it_ends(tmp_path):
+    path = tmp_path / "p.csv"
+    write_phases(path, [("td3", "", [1.0, 1.0])])
+    with open(path) as f:
+        lines = f.read().splitlines()
+    lines.insert(2, lines[1].replace("td3", "sac", 1))  # a sac row inside the td3 run: the td3 run was cut off
+    path.write_text("\n".join(lines) + "\n")
+    result = tool("phase_times.py", "--summary", str(path))
+    assert result.returncode != 0 and "line 3: a run's rows end before" in result.stderr, result.stderr
     bad = tool("phase_times.py", "--summary", str(tmp_path / "missing.csv"))
     assert bad.returncode != 0 and bad.stderr.strip().startswith("error: cannot read"), bad.stderr
 

@@ -238,27 +238,38 @@ def parse(argv: list) -> tuple:
     return argv[0], int(warmup), os.path.abspath(own["--csv"]) if own["--csv"] else None, sync, blocking, script_argv
 
 
+LAST = "rest of the loop"  # the last row of every run that --csv writes (see table)
+BLOCKING = "(--blocking-copy)"  # the label a --blocking-copy run's flags end with
+
+
 def runs_of(paths: list) -> list:
-    """The runs in phases CSVs, in order, as ((script, flags, device, synchronised), ms a whole step): a run's rows
-    are consecutive and name each phase once, so a run ends where its key changes or a phase comes again."""
-    runs, seen = [], set()
+    """The runs in phases CSVs, in order, as ((script, flags, device, threads, synchronised, timed steps), ms a whole
+    step): a run's rows are consecutive within one file and end with its "rest of the loop" row."""
+    runs = []
     for path in paths:
         try:
             with open(path, newline="") as f:
                 rows = list(csv.DictReader(f))
-        except OSError as e:
-            sys.exit(f"error: cannot read {path}: {e.strerror}")
+        except (OSError, UnicodeDecodeError) as e:
+            sys.exit(f"error: cannot read {path}: {getattr(e, 'strerror', None) or e}")
         if rows and not set(CSV_FIELDS) <= set(rows[0]):
             sys.exit(f"error: {path} is not a CSV that tools/phase_times.py --csv wrote")
-        seen = set()
-        for row in rows:
-            key = (row["script"], row["flags"], row["device"], row["synchronised"])
-            if not runs or runs[-1][0] != key or row["phase"] in seen:
-                runs.append([key, 0.0])
-                seen = set()
-            seen.add(row["phase"])
-            runs[-1][1] += float(row["ms_per_step"])
-    return [tuple(run) for run in runs]
+        run = None
+        for line, row in enumerate(rows, start=2):
+            key = tuple(row[field] for field in ("script", "flags", "device", "threads", "synchronised", "timed_steps"))
+            if run is not None and run[0] != key:
+                sys.exit(f"error: {path} line {line}: a run's rows end before its '{LAST}' row (a cut-off run?)")
+            try:
+                ms = float(row["ms_per_step"])
+            except (TypeError, ValueError):
+                sys.exit(f"error: {path} line {line}: not a phase row ({row['ms_per_step']!r} ms)")
+            run = [key, (run[1] if run else 0.0) + ms]
+            if row["phase"] == LAST:
+                runs.append(tuple(run))
+                run = None
+        if run is not None:
+            sys.exit(f"error: {path} ends inside a run (no '{LAST}' row): a cut-off run?")
+    return runs
 
 
 def summary(paths: list) -> None:
@@ -268,20 +279,21 @@ def summary(paths: list) -> None:
         groups[key].append(ms)
     if not groups:
         sys.exit("error: no rows in " + " ".join(paths))
-    label = " (--blocking-copy)"
-    print("| script | flags | device | synchronised | ms a step, each run | mean | vs --blocking-copy |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| script | flags | device | threads | synchronised | timed steps | ms a step, each run | mean | vs --blocking-copy |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     for key, values in groups.items():
-        script, flags, device, synchronised = key
+        script, flags, *rest = key
         mean = sum(values) / len(values)
-        before = groups.get((script, flags + label, device, synchronised))
+        before = groups.get((script, f"{flags} {BLOCKING}" if flags else BLOCKING, *rest))
         change = (
             ""
             if before is None
             else f"{mean - sum(before) / len(before):+.3f} ({mean / (sum(before) / len(before)) - 1:+.1%})"
         )
         each = ", ".join(f"{v:.3f}" for v in values)
-        print(f"| {script} | {flags} | {device} | {synchronised} | {each} | {mean:.3f} | {change} |")
+        print(f"| {' | '.join([script, flags, *rest])} | {each} | {mean:.3f} | {change} |")
 
 
 def main(argv=None):
@@ -320,7 +332,7 @@ def main(argv=None):
     rows = table(mark)
     on_gpu = torch.cuda.is_initialized()
     device = torch.cuda.get_device_name() if on_gpu else "cpu"
-    flags = " ".join(script_argv + ["(--blocking-copy)"] * blocking)  # what the CSV's rows are labelled with
+    flags = " ".join(script_argv + [BLOCKING] * blocking)  # what the CSV's rows are labelled with
     per_step, steps = sum(ms for _, ms, _, _ in rows), mark["steps"]
     how = "synchronised at every phase's start and end" if sync and on_gpu else "not synchronised"
     print(f"{script} {flags}: {steps} training steps timed on {device} ({threads} thread(s)), {per_step:.3f} ms a step")
