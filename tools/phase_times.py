@@ -197,13 +197,22 @@ def snapshot(timer: PhaseTimer, clock: dict) -> dict:
     }
 
 
+LAST = "rest of the loop"  # what no phase holds: the last row of every table, and of every run that --csv writes
+BLOCKING = "(--blocking-copy)"  # what a --blocking-copy run's flags end with
+
+
+def with_blocking(flags: str) -> str:
+    """A run's flags as a --blocking-copy run of them is labelled."""
+    return f"{flags} {BLOCKING}" if flags else BLOCKING
+
+
 def table(mark: dict) -> list:
     """Rows (phase, ms per training step, share of the loop's time, calls per step) of a snapshot; the loop's time
     excludes the evaluations in it, and "rest of the loop" is what no phase holds."""
     steps, seconds, calls = mark["steps"], mark["seconds"], mark["calls"]
     loop = mark["wall"] - seconds[WHOLE]
     rows = [(p, seconds[p], calls[p]) for p in ORDER if p != WHOLE and calls[p]]
-    rows.append(("rest of the loop", loop - sum(s for _, s, _ in rows), steps))
+    rows.append((LAST, loop - sum(s for _, s, _ in rows), steps))
     return [(p, 1000 * s / steps, 100 * s / loop, c / steps) for p, s, c in rows]
 
 
@@ -236,10 +245,6 @@ def parse(argv: list) -> tuple:
     if not warmup.isdigit():
         sys.exit(f"error: --warmup-updates must be an integer >= 0, got {warmup}")
     return argv[0], int(warmup), os.path.abspath(own["--csv"]) if own["--csv"] else None, sync, blocking, script_argv
-
-
-LAST = "rest of the loop"  # the last row of every run that --csv writes (see table)
-BLOCKING = "(--blocking-copy)"  # the label a --blocking-copy run's flags end with
 
 
 def runs_of(paths: list) -> list:
@@ -283,15 +288,10 @@ def summary(paths: list) -> None:
         "| script | flags | device | threads | synchronised | timed steps | ms a step, each run | mean | vs --blocking-copy |"
     )
     print("|---|---|---|---|---|---|---|---|---|")
-    for key, values in groups.items():
-        script, flags, *rest = key
-        mean = sum(values) / len(values)
-        before = groups.get((script, f"{flags} {BLOCKING}" if flags else BLOCKING, *rest))
-        change = (
-            ""
-            if before is None
-            else f"{mean - sum(before) / len(before):+.3f} ({mean / (sum(before) / len(before)) - 1:+.1%})"
-        )
+    means = {key: sum(values) / len(values) for key, values in groups.items()}
+    for (script, flags, *rest), values in groups.items():
+        mean, before = means[(script, flags, *rest)], means.get((script, with_blocking(flags), *rest))
+        change = "" if before is None else f"{mean - before:+.3f} ({mean / before - 1:+.1%})"
         each = ", ".join(f"{v:.3f}" for v in values)
         print(f"| {' | '.join([script, flags, *rest])} | {each} | {mean:.3f} | {change} |")
 
@@ -332,7 +332,7 @@ def main(argv=None):
     rows = table(mark)
     on_gpu = torch.cuda.is_initialized()
     device = torch.cuda.get_device_name() if on_gpu else "cpu"
-    flags = " ".join(script_argv + [BLOCKING] * blocking)  # what the CSV's rows are labelled with
+    flags = with_blocking(" ".join(script_argv)) if blocking else " ".join(script_argv)  # the CSV rows' label
     per_step, steps = sum(ms for _, ms, _, _ in rows), mark["steps"]
     how = "synchronised at every phase's start and end" if sync and on_gpu else "not synchronised"
     print(f"{script} {flags}: {steps} training steps timed on {device} ({threads} thread(s)), {per_step:.3f} ms a step")
