@@ -488,6 +488,9 @@ def check_args(args: Args):
     if args.cudagraphs and not (args.cuda and torch.cuda.is_available()):
         reason = " and drops --no-cuda" if torch.cuda.is_available() else "; torch finds none here"
         fail("--cudagraphs needs a CUDA GPU" + reason)
+    if args.learning_starts >= args.total_timesteps:  # allowed (a quick check of the wiring), but said: nothing is learned
+        steps = f"--learning-starts ({args.learning_starts}) >= --total-timesteps ({args.total_timesteps})"
+        print(f"note: {steps}: every step acts at random and the networks are never trained", file=sys.stderr)
 
 
 def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:

@@ -385,6 +385,17 @@ def test_bad_input_is_refused_in_one_line(script, flags, message, tmp_path, monk
     assert not os.path.exists("runs")  # refused before anything is written
 
 
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_a_run_that_never_reaches_learning_starts_says_so(script, capsys):
+    """Allowed (a quick check of the wiring), but not silent: a user who shortens --total-timesteps and keeps the
+    default --learning-starts would otherwise get an untrained policy and no word about it."""
+    module = load(script)
+    module.parse_args(["--learning-starts", "500", "--total-timesteps", "500"])  # steps 0-499: all random
+    assert "note: --learning-starts (500) >= --total-timesteps (500): every step acts at random" in capsys.readouterr().err
+    module.parse_args(["--learning-starts", "500", "--total-timesteps", "501"])  # step 500 trains
+    assert capsys.readouterr().err == ""
+
+
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_resume_without_checkpoint_is_refused(script, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
