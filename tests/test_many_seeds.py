@@ -207,6 +207,8 @@ def test_a_seed_of_a_process_trains_as_that_seed_alone(script, env_id, tmp_path,
         "checkpoint_frequency": 50,  # checkpoints are taken mid-training: they must not disturb it
         "run_name": "r{seed}",
     }
+    if script == "oparl":
+        args["reset_frequency"] = 25  # two resets (iterations 25 and 50) of every seed's optimistic actor at once
     many = module.main(small_args(module, seed=1, num_seeds=3, **args))
     one = module.main(small_args(module, seed=3, **args))
     assert torch.equal(one["generators"][0].get_state(), many["generators"][2].get_state()), "they drew differently"
