@@ -170,22 +170,34 @@ def test_candidate_with_the_largest_ensemble_std_is_taken():
         assert candidates[:, 0].abs().unique().numel() == 8  # a real choice among distinct candidates
 
 
+class SpreadPerSeed:
+    """A fake 3-seed ensemble whose members disagree by another function of the action in each seed."""
+
+    @staticmethod
+    def key(k, actions):  # seed k's spread of actions [..., ACTION_DIM], up to a constant factor
+        return [actions[..., 0], actions[..., 1], actions[..., 0] - actions[..., 1]][k]
+
+    def __call__(self, obs, actions):
+        keys = torch.stack([self.key(k, actions[k]) for k in range(3)])  # [seeds, candidates]
+        return torch.stack([keys * m for m in range(5)], -2)  # [seeds, critics, candidates]
+
+
 def test_each_seed_of_a_process_takes_its_own_best_candidate():
     """With 3 seeds, each seed draws its candidates from its own generator and takes the one its own critics spread
-    most on: the choice is made per seed, never one index for every seed."""
+    most on: the choice is made per seed, never one index for every seed or one seed's spread for all."""
     actor = oparl.Actor(OBS_DIM, SPACE, [torch.Generator().manual_seed(s) for s in (1, 2, 3)])
     obs = torch.randn(3, OBS_DIM, generator=torch.Generator().manual_seed(0))
     generators = [torch.Generator().manual_seed(s) for s in (11, 12, 13)]
     indices = []
     for _ in range(20):
         states = [g.get_state() for g in generators]
-        chosen = oparl.optimistic_action(obs, actor, SpreadByFirstAction(), 8, 0.5, generators)
+        chosen = oparl.optimistic_action(obs, actor, SpreadPerSeed(), 8, 0.5, generators)
         with torch.no_grad():
             means = actor(obs)
         for k, state in enumerate(states):  # seed k's 8 candidates, replayed from its generator
             noise = torch.randn(8, ACTION_DIM, generator=torch.Generator().set_state(state))
             candidates = (means[k] + noise * actor.action_scale * 0.5).clamp(-2, 2)
-            best = candidates[:, 0].abs().argmax()
+            best = SpreadPerSeed.key(k, candidates).abs().argmax()
             assert torch.equal(chosen[k], candidates[best])
             indices.append(best.item())
     assert len(set(indices[0::3])) > 1 and indices[0::3] != indices[1::3]  # the seeds' choices differ

@@ -391,7 +391,8 @@ def test_a_run_that_never_reaches_learning_starts_says_so(script, capsys):
     default --learning-starts would otherwise get an untrained policy and no word about it."""
     module = load(script)
     module.parse_args(["--learning-starts", "500", "--total-timesteps", "500"])  # steps 0-499: all random
-    assert "note: --learning-starts (500) >= --total-timesteps (500): every step acts at random" in capsys.readouterr().err
+    note = "note: --learning-starts (500) >= --total-timesteps (500): every step acts at random and the networks are never trained"
+    assert capsys.readouterr().err == note + "\n"
     module.parse_args(["--learning-starts", "500", "--total-timesteps", "501"])  # step 500 trains
     assert capsys.readouterr().err == ""
 
