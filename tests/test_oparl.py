@@ -188,12 +188,12 @@ def test_each_seed_of_a_process_takes_its_own_best_candidate():
     actor = oparl.Actor(OBS_DIM, SPACE, [torch.Generator().manual_seed(s) for s in (1, 2, 3)])
     obs = torch.randn(3, OBS_DIM, generator=torch.Generator().manual_seed(0))
     generators = [torch.Generator().manual_seed(s) for s in (11, 12, 13)]
+    with torch.no_grad():
+        means = actor(obs)  # each seed's noiseless optimistic action
     indices = []
     for _ in range(20):
         states = [g.get_state() for g in generators]
         chosen = oparl.optimistic_action(obs, actor, SpreadPerSeed(), 8, 0.5, generators)
-        with torch.no_grad():
-            means = actor(obs)
         for k, state in enumerate(states):  # seed k's 8 candidates, replayed from its generator
             noise = torch.randn(8, ACTION_DIM, generator=torch.Generator().set_state(state))
             candidates = (means[k] + noise * actor.action_scale * 0.5).clamp(-2, 2)
