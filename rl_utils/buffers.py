@@ -1,0 +1,48 @@
+"""The replay buffer of the off-policy scripts: preallocated tensors on the training device, uniform sampling."""
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+
+class Batch(NamedTuple):
+    observations: torch.Tensor
+    actions: torch.Tensor
+    next_observations: torch.Tensor
+    rewards: torch.Tensor
+    terminations: torch.Tensor
+
+
+class ReplayBuffer:
+    """Each seed's transitions in one preallocated [num_seeds, capacity, fields] tensor: one row per seed per add, one
+    gather per batch, each seed's batch drawn from its own transitions."""
+
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, num_seeds: int, device: torch.device):
+        self.capacity, self.pos, self.size, self.num_seeds = capacity, 0, 0, num_seeds
+        self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
+        self.storage = torch.zeros((num_seeds, capacity, sum(self.widths)), dtype=torch.float32, device=device)
+
+    def add(self, obs, action, next_obs, reward, termination):
+        """One transition per seed: obs [num_seeds, obs_dim], ..., reward and termination [num_seeds]."""
+        scalars = np.stack([reward, termination], -1)
+        row = np.concatenate([obs, action, next_obs, scalars], -1, dtype=np.float32)
+        self.storage[:, self.pos] = torch.from_numpy(row)
+        self.pos = (self.pos + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, *shape: int) -> Batch:
+        """Transitions drawn uniformly with replacement, for each seed a batch of this shape: `sample(256)` gives
+        fields [num_seeds, 256, width], `sample(20, 256)` twenty batches each ([num_seeds, 20, 256, width])."""
+        device = self.storage.device
+        indices = torch.randint(self.size, (self.num_seeds, *shape), device=device)
+        seed = torch.arange(self.num_seeds, device=device).view(-1, *[1] * len(shape))
+        obs, actions, next_obs, rewards, terminations = self.storage[seed, indices].split(self.widths, dim=-1)
+        return Batch(obs, actions, next_obs, rewards.squeeze(-1), terminations.squeeze(-1))
+
+    def state_dict(self) -> dict:
+        return {"rows": self.storage[:, : self.size].cpu().clone(), "pos": self.pos}
+
+    def load_state_dict(self, state: dict):
+        self.storage[:, : state["rows"].shape[1]] = state["rows"].to(self.storage.device)
+        self.size, self.pos = state["rows"].shape[1], state["pos"]

@@ -1,0 +1,174 @@
+"""The environment layer: Gymnasium MuJoCo tasks and DeepMind Control tasks (`dm_control/<domain>-<task>-v0`,
+through shimmy) as plain environments with flat float32 observations and float32 Box actions; one per seed, stepped
+side by side (`SeedEnvs`); and the deterministic evaluation every script reports (`evaluate`)."""
+
+import difflib
+from typing import Optional
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from rl_utils.cli import fail
+
+
+def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
+    return gym.spaces.Box(space.low.astype(np.float32), space.high.astype(np.float32), dtype=np.float32)
+
+
+def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_every: int = 1):
+    """One environment with a flat float32 observation and a float32 Box action space.
+
+    A plain (not vectorised) env: the loop sees the true final observation of every episode and
+    resets itself, so no autoreset step can end up in the replay buffer."""
+    if env_id.startswith("dm_control/"):
+        import shimmy  # registers the DeepMind Control tasks as dm_control/<domain>-<task>-v0
+
+        gym.register_envs(shimmy)
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
+        hint = f"did you mean {', '.join(close)}?" if close else "use e.g. Hopper-v4 or dm_control/cartpole-swingup-v0"
+        fail(f"unknown --env-id {env_id!r}; {hint}")
+    try:
+        env = gym.make(env_id, render_mode="rgb_array" if video_folder else None)
+    except Exception as e:  # a registered id whose dependencies are missing, e.g. Hopper-v3 (mujoco-py)
+        fail(f"could not create --env-id {env_id!r}: {type(e).__name__}: {e}")
+    if not isinstance(env.action_space, gym.spaces.Box):
+        space = type(env.action_space).__name__
+        fail(f"--env-id {env_id!r} has a {space} action space; only continuous (Box) actions are supported")
+    if not (np.isfinite(env.action_space.low).all() and np.isfinite(env.action_space.high).all()):
+        fail(f"--env-id {env_id!r} has unbounded actions; the policies here act within finite bounds")
+    if isinstance(env.observation_space, gym.spaces.Dict):  # DeepMind Control observations are dicts of arrays
+        env = gym.wrappers.FlattenObservation(env)
+    env = gym.wrappers.TransformObservation(env, lambda obs: obs.astype(np.float32), float32_box(env.observation_space))
+    if env.action_space.dtype != np.float32:  # DeepMind Control declares float64 actions
+        to_env_dtype = lambda action, dtype=env.action_space.dtype: np.asarray(action, dtype=dtype)  # noqa: E731
+        env = gym.wrappers.TransformAction(env, to_env_dtype, float32_box(env.action_space))
+    env = gym.wrappers.RecordEpisodeStatistics(env)
+    if video_folder:
+        env = gym.wrappers.RecordVideo(env, video_folder, episode_trigger=lambda episode: episode % video_every == 0)
+    env = EpisodeRecord(env)
+    env.action_space.seed(seed)
+    return env
+
+
+def rng_state(rng) -> dict:
+    """A numpy Generator's or RandomState's (dm_control's) state, in types `weights_only` loading accepts."""
+    if isinstance(rng, np.random.RandomState):
+        name, key, pos, has_gauss, gauss = rng.get_state()
+        return {"legacy": (name, torch.from_numpy(key.astype(np.int64)), pos, has_gauss, gauss)}
+    return {"generator": rng.bit_generator.state}
+
+
+def set_rng_state(rng, state: dict):
+    if "legacy" in state:
+        name, key, pos, has_gauss, gauss = state["legacy"]
+        rng.set_state((name, key.numpy().astype(np.uint32), pos, has_gauss, gauss))
+    else:
+        rng.bit_generator.state = state["generator"]
+
+
+class EpisodeRecord(gym.Wrapper):
+    """Remembers how the current episode began (the reset's seed, or the env's random state before the reset) and
+    the actions taken since, so that a checkpoint taken mid-episode rebuilds the env exactly by replaying them."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.episode = None  # None: between episodes
+
+    def reset(self, *, seed=None, options=None):
+        start = rng_state(self.env.unwrapped.np_random) if seed is None else None
+        self.episode = {"seed": seed, "rng": start, "actions": []}
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action):
+        self.episode["actions"].append(np.array(action))
+        result = self.env.step(action)
+        if result[2] or result[3]:  # terminated or truncated
+            self.episode = None
+        return result
+
+    def state_dict(self) -> Optional[dict]:
+        if self.episode is None:
+            return None
+        actions = self.episode["actions"]
+        return {**self.episode, "actions": torch.from_numpy(np.stack(actions)) if actions else torch.zeros(0)}
+
+    def replay(self, state: Optional[dict]):
+        """Rebuilds the episode of a state_dict(): its observation now, or None between episodes."""
+        if state is None:
+            self.episode = None
+            return None
+        if state["rng"] is not None:
+            set_rng_state(self.env.unwrapped.np_random, state["rng"])
+        obs, _ = self.reset(seed=state["seed"])
+        for action in state["actions"].numpy():
+            obs = self.step(action)[0]
+        return obs
+
+
+class SeedEnvs:
+    """One env per seed (--num-seeds), stepped side by side, with arrays [num_seeds, ...] in and out, as Gymnasium's
+    SyncVectorEnv with its same-step autoreset: where an episode ends, `step` returns the next episode's first
+    observation, and infos["real_next_obs"] holds every env's true next observation (the one to learn from)."""
+
+    def __init__(self, env_id: str, seeds: list, video_folders: Optional[list] = None, video_every: int = 1):
+        self.seeds = seeds
+        self.envs = [
+            make_env(env_id, seed, folder, video_every) for seed, folder in zip(seeds, video_folders or [None] * len(seeds))
+        ]
+        self.action_space = self.envs[0].action_space  # one env's
+        self.obs_dim = int(np.prod(self.envs[0].observation_space.shape))
+        self.action_dim = int(np.prod(self.action_space.shape))
+
+    def __iter__(self):
+        return iter(self.envs)
+
+    def __len__(self):
+        return len(self.envs)
+
+    def reset(self) -> np.ndarray:
+        """Every env's first observation of a run: each env reset with its seed."""
+        return np.stack([env.reset(seed=seed)[0] for env, seed in zip(self.envs, self.seeds)])
+
+    def sample_actions(self) -> np.ndarray:
+        return np.stack([env.action_space.sample() for env in self.envs])
+
+    def step(self, actions: np.ndarray):
+        """Each env steps with its seed's action. Returns next_obs, rewards, terminations, truncations (each
+        [num_seeds, ...]) and infos: "real_next_obs", and "episode" (each env's episode statistics, or None)."""
+        next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(self.envs, actions)))
+        real_next_obs = np.stack(next_obs)
+        next_obs = [
+            env.reset()[0] if done else obs
+            for env, obs, done in zip(self.envs, next_obs, np.logical_or(terminations, truncations))
+        ]
+        episodes = [info.get("episode") if end or cut else None for info, end, cut in zip(infos, terminations, truncations)]
+        infos = {"real_next_obs": real_next_obs, "episode": episodes}
+        return np.stack(next_obs), np.array(rewards), np.array(terminations), np.array(truncations), infos
+
+    def close(self):
+        for env in self.envs:
+            env.close()
+
+
+def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
+    """Undiscounted returns [num_envs, num_episodes] of `policy` (observations [num_envs, obs_dim] -> actions), one
+    env per seed, stepped side by side. The envs are re-seeded with `seeds` each time, so every evaluation sees the
+    same start states."""
+    envs = list(envs)
+    returns = np.zeros((len(envs), num_episodes))
+    obs = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)]
+    episode = [0] * len(envs)
+    while min(episode) < num_episodes:
+        actions = policy(np.stack(obs))
+        for k, env in enumerate(envs):
+            if episode[k] == num_episodes:  # this seed is done; the others go on
+                continue
+            obs[k], reward, terminated, truncated, _ = env.step(actions[k])
+            returns[k, episode[k]] += reward
+            if terminated or truncated:
+                episode[k] += 1
+                if episode[k] < num_episodes:
+                    obs[k], _ = env.reset()
+    return returns
