@@ -43,7 +43,7 @@ class Args:
     save_model: bool = False
     """whether to save the actors and critics into the `runs/{run_name}` folder"""
     run_name: Optional[str] = None
-    """name of the run folder under runs/, with {seed} where the seed's number goes (default: {env_id}__{exp_name}__{seed}__{unix time})"""
+    """the run folder under runs/, {seed} where the seed goes (default: {env_id}__{exp_name}__{seed}__{unix time})"""
     num_seeds: int = 1
     """train seeds seed, seed+1, ..., seed+num_seeds-1 side by side in this process, each an ordinary run in its own folder"""
     checkpoint_frequency: int = 0
@@ -79,13 +79,13 @@ class Args:
     q_num: int = 5
     """the number of critics in the ensemble (2: the paper's "two Q values" ablation)"""
     optimistic_ratio: float = 0.5
-    """share of the steps after learning starts acted by the optimistic actor, spread evenly (1: optimistic only, 0: pessimistic only)"""
+    """share of the steps after learning starts acted by the optimistic actor (1: optimistic only, 0: pessimistic only)"""
     num_candidates: int = 1
     """noisy optimistic actions drawn per optimistic step; the one whose Q-values spread most across the ensemble is taken"""
     reset_frequency: int = 20000
     """copy the pessimistic actor into the optimistic actor every this many training iterations (0: never)"""
     critic_style: Literal["release", "td3"] = "release"
-    """release: SiLU critics with truncated-normal weights and zero biases, as in the authors' code; td3: ReLU and nn.Linear's init"""
+    """release: SiLU critics, truncated-normal weights, zero biases (the authors' code); td3: ReLU, nn.Linear's init"""
 
     # Evaluation (the metric the paper reports)
     eval_frequency: int = 5000
@@ -95,7 +95,7 @@ class Args:
     bf16: bool = False
     """run the training matmuls in bfloat16 (autocast; weights, losses and optimizer states stay float32)"""
     cudagraphs: bool = False
-    """record each kind of training update once as a CUDA graph and replay it (needs a CUDA GPU); losses are checked for NaN every 100 steps"""
+    """record each kind of training update once as a CUDA graph and replay it (a CUDA GPU; NaN checks every 100 steps)"""
 
 
 # ALGO LOGIC: initialize agent here:

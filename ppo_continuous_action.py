@@ -40,7 +40,7 @@ class Args:
     run_name: Optional[str] = None
     """name of the run folder under runs/ (default: {env_id}__{exp_name}__{seed}__{unix time})"""
     checkpoint_frequency: int = 0
-    """write `checkpoint.pt` into the run folder at the first episode end after every this many steps, and at the end (0: never)"""
+    """write `checkpoint.pt` into the run folder at the first episode end after every this many steps, and at the end"""
     resume: Optional[str] = None
     """continue the run in this folder (e.g. runs/{run_name}) from its checkpoint; flags given with it must match the run's"""
 

@@ -41,7 +41,7 @@ class Args:
     run_name: Optional[str] = None
     """name of the run folder under runs/ (default: {env_id}__{exp_name}__{seed}__{unix time})"""
     checkpoint_frequency: int = 0
-    """write `checkpoint.pt` into the run folder at the first episode end after every this many steps, and at the end (0: never)"""
+    """write `checkpoint.pt` into the run folder at the first episode end after every this many steps, and at the end"""
     resume: Optional[str] = None
     """continue the run in this folder (e.g. runs/{run_name}) from its checkpoint; flags given with it must match the run's"""
 
@@ -89,7 +89,7 @@ class Args:
     int_gamma: float = 0.99
     """the discount factor of the intrinsic return"""
     num_iterations_obs_norm_init: int = 1
-    """rollouts of --num-steps random actions that initialise the observation statistics before training (not counted in --total-timesteps, as in CleanRL)"""
+    """rollouts of --num-steps random actions that set the observation statistics before training (as CleanRL; not counted)"""
 
     # Evaluation (the metric the paper reports)
     eval_frequency: int = 5000

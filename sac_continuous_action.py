@@ -41,7 +41,7 @@ class Args:
     save_model: bool = False
     """whether to save the actor and critics into the `runs/{run_name}` folder"""
     run_name: Optional[str] = None
-    """name of the run folder under runs/, with {seed} where the seed's number goes (default: {env_id}__{exp_name}__{seed}__{unix time})"""
+    """the run folder under runs/, {seed} where the seed goes (default: {env_id}__{exp_name}__{seed}__{unix time})"""
     num_seeds: int = 1
     """train seeds seed, seed+1, ..., seed+num_seeds-1 side by side in this process, each an ordinary run in its own folder"""
     checkpoint_frequency: int = 0
@@ -85,7 +85,7 @@ class Args:
     bf16: bool = False
     """run the training matmuls in bfloat16 (autocast; weights, losses and optimizer states stay float32)"""
     cudagraphs: bool = False
-    """record each kind of training update once as a CUDA graph and replay it (needs a CUDA GPU); losses are checked for NaN every 100 steps"""
+    """record each kind of training update once as a CUDA graph and replay it (a CUDA GPU; NaN checks every 100 steps)"""
 
 
 # ALGO LOGIC: initialize agent here:

@@ -64,7 +64,7 @@ def parse_args(Args, checks=None, argv=None):
         if differing:
             flags = ", ".join(f"--{k.replace('_', '-')} {getattr(args, k)} (run: {run_args[k]})" for k in differing)
             fail(f"--resume {args.resume}: {flags}; a resumed run keeps its hyperparameters")
-    check_args(args, checks(args) if checks else [])
+    validate(args, checks(args) if checks else [])
     return args
 
 
@@ -72,7 +72,7 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def check_args(args, own: list):
+def validate(args, own: list):
     """The checks every script shares (RULES, by flag name, and the pairs of flags), then the script's own."""
     values = vars(args)
     checks = [

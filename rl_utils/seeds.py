@@ -54,8 +54,8 @@ def num_seeds(args) -> int:
 
 
 def per_seed(fn):
-    """fn (a function or a network), written for one seed, run for every seed: its tensor arguments (and NamedTuples of them) carry a leading
-    seeds dimension, its network arguments come from stack_seeds, and what it returns gains the seeds dimension."""
+    """fn (a function or a network), written for one seed, run for every seed: its tensor arguments (and NamedTuples
+    of them) carry a leading seeds dimension, its networks come from stack_seeds, what it returns gains that dimension."""
 
     @functools.wraps(fn)
     def run(*args):

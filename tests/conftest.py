@@ -24,7 +24,7 @@ def source(script: str) -> str:
 SCRIPTS = sorted(
     os.path.basename(p).removesuffix("_continuous_action.py") for p in glob.glob(f"{REPO}/*_continuous_action.py")
 )
-OFF_POLICY = [s for s in SCRIPTS if "class ReplayBuffer" in source(s)]  # the scripts with a replay buffer
+OFF_POLICY = [s for s in SCRIPTS if "ReplayBuffer(" in source(s)]  # the scripts with a replay buffer
 ON_POLICY = [s for s in SCRIPTS if s not in OFF_POLICY]  # PPO and the exploration methods built on it
 
 
@@ -81,6 +81,13 @@ def load(short_name: str):
     return importlib.import_module(f"{short_name}_continuous_action")
 
 
+def parse(module, argv: list):
+    """A script's command line as its __main__ parses it: rl_utils' checks and the script's own `check_args`."""
+    from rl_utils import parse_args
+
+    return parse_args(module.Args, getattr(module, "check_args", None), argv)
+
+
 @pytest.fixture(params=SCRIPTS)
 def algo(request):
     return load(request.param)
@@ -127,7 +134,7 @@ def refusal(script, argv, cwd, monkeypatch):
     monkeypatch.chdir(cwd)
     module = load(script)
     with pytest.raises(SystemExit) as exit_info:
-        module.main(module.parse_args(argv))
+        module.main(parse(module, argv))
     message = str(exit_info.value)
     assert message.startswith("error: ") and "\n" not in message, message
     return message

@@ -1,5 +1,6 @@
 """Our OPARL against the authors' release, number for number: the same weights in the release's TD3
-object and in our networks, the same batch, one training iteration each. Needs a checkout of
+object and in the networks of our main, the same batch and the same target noise, one training iteration
+each (the release's `train`, our main's `update`). Needs a checkout of
 github.com/yydsok/OPARL (tools/authors_release.py says which commit) named by OPARL_RELEASE_DIR;
 skipped without one. Also the adapter that runs the release: its dmc2gym stand-in and its loading."""
 
@@ -13,13 +14,15 @@ import torch
 
 import oparl_continuous_action as oparl
 from conftest import REPO
+from rl_utils import Batch
 
 sys.path.insert(0, os.path.join(REPO, "tools"))
 import authors_release  # noqa: E402
 
 RELEASE_DIR = os.environ.get("OPARL_RELEASE_DIR")
 needs_release = pytest.mark.skipif(not RELEASE_DIR, reason="OPARL_RELEASE_DIR names no checkout of github.com/yydsok/OPARL")
-OBS_DIM, ACTION_DIM, BATCH, Q_NUM = 6, 2, 32, 5
+# a task with several action dimensions in [-1, 1], the release's max_action = 1 (main.py: action_space.high[0])
+ENV_ID, OBS_DIM, ACTION_DIM, BATCH, Q_NUM = "Hopper-v4", 11, 3, 32, 5
 
 
 def release_td3():
@@ -58,38 +61,42 @@ def copy_actor(release_actor, ours: oparl.Actor):
 
 
 @pytest.fixture
-def both():
-    """The release's TD3 (noise off) and our networks, holding the same weights."""
+def both(tmp_path, monkeypatch):
+    """The release's TD3 (its noise as main.py scales it) and the networks of our main (a run that has not trained
+    yet, with its default flags), holding the same weights, and a batch."""
     module = release_td3()
     torch.manual_seed(0)
     policy = module.TD3(
-        OBS_DIM, ACTION_DIM, max_action=1.0, policy_noise=0.0, noise_clip=0.5, policy_freq=2, reset_freq=20000, Q_num=Q_NUM
+        OBS_DIM, ACTION_DIM, max_action=1.0, policy_noise=0.2, noise_clip=0.5, policy_freq=2, reset_freq=20000, Q_num=Q_NUM
     )
-    space = oparl.gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
+    monkeypatch.chdir(tmp_path)
+    args = oparl.Args(env_id=ENV_ID, total_timesteps=1, learning_starts=1, batch_size=BATCH, eval_episodes=1, cuda=False)
+    result = oparl.main(args)
     ours = {
-        "qf": oparl.QEnsemble(OBS_DIM, ACTION_DIM, Q_NUM),
-        "qf_target": oparl.QEnsemble(OBS_DIM, ACTION_DIM, Q_NUM),
-        "pessimistic": oparl.Actor(OBS_DIM, space),
-        "pessimistic_target": oparl.Actor(OBS_DIM, space),
-        "optimistic": oparl.Actor(OBS_DIM, space),
+        "qf": result["qf"],
+        "qf_target": result["qf_target"],
+        "pessimistic": result["pessimistic_actor"],
+        "pessimistic_target": result["target_pessimistic_actor"],
+        "optimistic": result["optimistic_actor"],
     }
+    assert ours["qf"].w1.shape == (Q_NUM, OBS_DIM + ACTION_DIM, 256) and ours["pessimistic"].action_scale.tolist() == [1.0] * 3
     with torch.no_grad():  # targets apart from their sources, so that the target networks are really the ones used
         for p in [*policy.critic_target.parameters(), *policy.actor_target.parameters()]:
             p.add_(0.01 * torch.randn_like(p))
-    copy_critic(policy.critic, ours["qf"])
+    copy_critic(policy.critic, ours["qf"])  # in place: main's update uses these very networks
     copy_critic(policy.critic_target, ours["qf_target"])
     copy_actor(policy.actor, ours["pessimistic"])
     copy_actor(policy.actor_target, ours["pessimistic_target"])
     copy_actor(policy.exit_actor, ours["optimistic"])
     g = torch.Generator().manual_seed(1)
-    batch = oparl.Batch(
+    batch = Batch(
         torch.randn(BATCH, OBS_DIM, generator=g),
         torch.rand(BATCH, ACTION_DIM, generator=g) * 2 - 1,
         torch.randn(BATCH, OBS_DIM, generator=g),
         torch.randn(BATCH, generator=g),
         (torch.rand(BATCH, generator=g) < 0.2).float(),
     )
-    return module, policy, ours, batch
+    return module, policy, ours, batch, result
 
 
 class OneBatch:
@@ -103,9 +110,16 @@ class OneBatch:
         return b.observations, b.actions, b.next_observations, b.rewards[:, None], (1 - b.terminations)[:, None]
 
 
+def release_actor_as_ours(release_actor) -> oparl.Actor:
+    ours = oparl.Actor(OBS_DIM, oparl.gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32))
+    copy_actor(release_actor, ours)
+    return ours
+
+
 @needs_release
 def test_one_training_iteration_matches_the_release(both, monkeypatch):
-    module, policy, ours, batch = both
+    module, policy, ours, batch, result = both
+    args = oparl.Args()  # main's defaults: the release's discount, tau, learning rate, target noise and its clip
     seen = {}
     real_mse = module.F.mse_loss
 
@@ -117,49 +131,47 @@ def test_one_training_iteration_matches_the_release(both, monkeypatch):
     policy.total_it = 1  # this iteration (2) updates the actors, as every second one does
     # Adam's eps, 1e-8 in both, set negligible on both sides: our critic loss is Q_NUM times the release's,
     # and with eps the two steps differ where a gradient is itself ~1e-8 (30 of 10240 critic weights, by up
-    # to 1.2e-4, in this draw); without it a constant factor cannot change an Adam step
+    # to 1.2e-4, in one draw); without it a constant factor cannot change an Adam step
     for optimizer in (policy.critic_optimizer, policy.actor_optimizer, policy.exit_actor_optimizer):
         optimizer.param_groups[0]["eps"] = 1e-30
+    for name in ("q_optimizer", "pessimistic_optimizer", "optimistic_optimizer"):  # main's, fused as it builds them
+        assert result[name].param_groups[0]["lr"] == policy.critic_optimizer.param_groups[0]["lr"]
+        result[name].param_groups[0]["eps"] = 1e-30
+    torch.manual_seed(7)  # the target noise: the release's first draw, as ours is, of the actions' shape
     released = policy.train(OneBatch(batch), BATCH)
 
-    args = oparl.Args(policy_noise=0.0)
+    torch.manual_seed(7)
     target = oparl.td_target(batch, ours["pessimistic_target"], ours["qf_target"], args)
-    torch.testing.assert_close(target, seen["target"][0, :, 0], rtol=1e-5, atol=1e-5)  # the TD target, noise off
+    assert not torch.equal(target, oparl.td_target(batch, ours["pessimistic_target"], ours["qf_target"], args))  # noisy
+    torch.testing.assert_close(target, seen["target"][0, :, 0], rtol=1e-5, atol=1e-5)  # the TD target, noise and all
     for member in range(1, Q_NUM):  # every member learns toward the same target
         torch.testing.assert_close(seen["target"][member], seen["target"][0])
 
-    q_optimizer = torch.optim.Adam(ours["qf"].parameters(), lr=3e-4, eps=1e-30, fused=True)  # as main builds them, eps aside
-    qf_loss, _ = oparl.update_critic(batch, ours["qf"], q_optimizer, ours["pessimistic_target"], ours["qf_target"], args)
-    # ours sums the members' MSEs, the release averages them: a factor of Q_NUM, which Adam's step does not see
-    assert qf_loss.item() == pytest.approx(Q_NUM * released["critic_loss"], rel=1e-5)
-    pessimistic_optimizer = torch.optim.Adam(ours["pessimistic"].parameters(), lr=3e-4, eps=1e-30, fused=True)
-    optimistic_optimizer = torch.optim.Adam(ours["optimistic"].parameters(), lr=3e-4, eps=1e-30, fused=True)
-    pessimistic_loss, optimistic_loss = oparl.update_actors(
-        batch, ours["pessimistic"], ours["optimistic"], pessimistic_optimizer, optimistic_optimizer, ours["qf"]
-    )
+    torch.manual_seed(7)  # main's training iteration (an actor step: policy_step), on the same batch and noise
+    logs = result["update"](Batch(*(field[None] for field in batch)), True)
+    # main logs the members' mean MSE, as the release computes it (the loss it steps on sums them: a factor of
+    # Q_NUM, which Adam's step does not see)
+    assert logs["losses/qf_loss"].item() == pytest.approx(released["critic_loss"], rel=1e-5)
     # both actor losses come after the critic's step, in the release as here
-    assert pessimistic_loss.item() == pytest.approx(released["actor_loss"], rel=1e-4, abs=1e-6)
-    assert optimistic_loss.item() == pytest.approx(released["exit_actor_loss"], rel=1e-4, abs=1e-6)
-    oparl.soft_update([ours["qf_target"], ours["pessimistic_target"]], [ours["qf"], ours["pessimistic"]], 0.005)
+    assert logs["losses/pessimistic_actor_loss"].item() == pytest.approx(released["actor_loss"], rel=1e-4, abs=1e-6)
+    assert logs["losses/optimistic_actor_loss"].item() == pytest.approx(released["exit_actor_loss"], rel=1e-4, abs=1e-6)
 
     expected = {"qf": oparl.QEnsemble(OBS_DIM, ACTION_DIM, Q_NUM), "qf_target": oparl.QEnsemble(OBS_DIM, ACTION_DIM, Q_NUM)}
     copy_critic(policy.critic, expected["qf"])
     copy_critic(policy.critic_target, expected["qf_target"])
-    for name in ("qf", "qf_target"):  # the critic after its Adam step, and the Polyak-averaged target
-        for mine, theirs in zip(ours[name].parameters(), expected[name].parameters()):
-            torch.testing.assert_close(mine, theirs, rtol=1e-4, atol=1e-6)
-    for mine, theirs in [
-        (ours["pessimistic"].fc1.weight, policy.actor.l1.weight),
-        (ours["optimistic"].fc_mu.weight, policy.exit_actor.l3.weight),
-        (ours["pessimistic_target"].fc2.weight, policy.actor_target.l2.weight),
-    ]:
-        torch.testing.assert_close(mine, theirs, rtol=1e-4, atol=1e-6)
+    expected["pessimistic"] = release_actor_as_ours(policy.actor)
+    expected["optimistic"] = release_actor_as_ours(policy.exit_actor)
+    expected["pessimistic_target"] = release_actor_as_ours(policy.actor_target)
+    # the critic after its Adam step, both actors after theirs, and the Polyak-averaged targets
+    for name, net in expected.items():
+        for (param, mine), theirs in zip(ours[name].named_parameters(), net.parameters()):
+            torch.testing.assert_close(mine, theirs, rtol=1e-4, atol=1e-6, msg=lambda m, n=f"{name}.{param}": f"{n}: {m}")
 
 
 @needs_release
 def test_the_release_resets_by_copying_the_pessimistic_actor_into_the_optimistic_one(both):
     # the direction this repository follows (pi_opt <- pi_pes, Section 4.3), against Algorithm 1's reverse
-    _, policy, _, batch = both
+    _, policy, _, batch, _ = both
     policy.total_it, policy.policy_freq = 20000 - 1, 10**9  # the next iteration resets; no actor step in it
     pessimistic_before = policy.actor.l1.weight.detach().clone()
     assert not torch.equal(policy.exit_actor.l1.weight, pessimistic_before)
@@ -170,13 +182,17 @@ def test_the_release_resets_by_copying_the_pessimistic_actor_into_the_optimistic
 
 @needs_release
 def test_the_optimistic_candidate_choice_matches_the_release(both):
-    _, policy, ours, _ = both
+    _, policy, ours, _, _ = both
     obs = torch.randn(OBS_DIM)
+    args = oparl.Args(num_candidates=10, exploration_noise=0.5)
+    with torch.no_grad():
+        mean = ours["optimistic"](obs)
+    chosen_indices = set()
     for seed in range(20):
         torch.manual_seed(seed)
-        chosen = oparl.optimistic_action(obs, ours["optimistic"], ours["qf"], 10, 0.5, None)
-        torch.manual_seed(seed)  # the same ten candidates, as optimistic_action draws them
-        candidates = (ours["optimistic"](obs).expand(10, -1) + torch.normal(0, torch.full((10, ACTION_DIM), 0.5))).clamp(-1, 1)
+        chosen = oparl.optimistic_action(obs, ours["optimistic"], ours["qf"], args)
+        torch.manual_seed(seed)  # the same ten candidates, as optimistic_action draws them (action scale 1)
+        candidates = (mean.expand(10, -1) + torch.randn(10, ACTION_DIM) * 0.5).clamp(-1, 1)
         # the release's rule (main.py): the population std of each candidate's N Q-values, the first strictly largest wins
         with torch.no_grad():
             q = policy.critic(obs.expand(10, -1), candidates)[:, :, 0].T.tolist()
@@ -185,6 +201,8 @@ def test_the_optimistic_candidate_choice_matches_the_release(both):
             if np.std(values) > best_std:
                 best, best_std = index, np.std(values)
         torch.testing.assert_close(chosen, candidates[best])
+        chosen_indices.add(best)
+    assert len(chosen_indices) > 1  # a real choice, not always the same candidate
 
 
 def test_the_dmc2gym_stand_in_behaves_as_dmc2gym():

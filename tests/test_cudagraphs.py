@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import OFF_POLICY, REPO, cli_flags, critic_lr_flag, load, needs_cuda, scalars, script_command, small_args
+from conftest import OFF_POLICY, REPO, cli_flags, critic_lr_flag, load, needs_cuda, parse, scalars, script_command, small_args
 
 LOSSES = ["losses/qf_loss", "losses/qf_values"]
 # (script, seeds in the process): REDQ trains one seed per process (its command line refuses more)
@@ -23,7 +23,7 @@ SEED_CASES = [(s, n) for s in OFF_POLICY for n in (1, 3) if n == 1 or s != "redq
 def test_graphs_train_as_the_eager_updates_do(script, num_seeds, tmp_path, monkeypatch):
     """Same seed, with and without --cudagraphs: the same losses at every logged step (the first
     updates run eagerly as warm-up, the rest are replays) and the same final actor; with 3 seeds in
-    one process, for every seed (each seed's generator advances inside the graphs as it does eagerly)."""
+    one process, for every seed (the generator advances inside the graphs as it does eagerly)."""
     monkeypatch.chdir(tmp_path)
     module = load(script)
     runs = {}
@@ -110,10 +110,10 @@ def test_non_finite_loss_under_graphs_stops_at_a_logging_step(script, tmp_path):
 @needs_cuda
 @pytest.mark.parametrize("script", OFF_POLICY)
 def test_phase_times_charges_the_recorded_update_to_its_replay(script, tmp_path):
-    """tools/phase_times.py under --cudagraphs: after warm-up every update is a replay (no eager critic update is
+    """tools/speed/phase_times.py under --cudagraphs: after warm-up every update is a replay (no eager critic update is
     timed), and the synchronising timers leave the recording intact (the run ends and reports)."""
     flags = cli_flags(script, total_timesteps=600, learning_starts=100, batch_size=32, eval_frequency=600, eval_episodes=1)
-    tool = [sys.executable, os.path.join(REPO, "tools", "phase_times.py"), script, "--env-id", "Pendulum-v1", *flags]
+    tool = [sys.executable, os.path.join(REPO, "tools", "speed", "phase_times.py"), script, "--env-id", "Pendulum-v1", *flags]
     result = subprocess.run([*tool, "--cudagraphs", "--warmup-updates", "20"], cwd=tmp_path, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     summary = next(line for line in result.stdout.splitlines() if "training steps timed on" in line)
@@ -159,5 +159,5 @@ def test_cudagraphs_without_a_gpu_is_refused_in_one_line(script, tmp_path, monke
     monkeypatch.chdir(tmp_path)
     module = load(script)
     with pytest.raises(SystemExit) as exit_info:
-        module.main(module.parse_args(["--cudagraphs"]))
+        module.main(parse(module, ["--cudagraphs"]))
     assert str(exit_info.value) == "error: --cudagraphs needs a CUDA GPU; torch finds none here"

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from conftest import ON_POLICY, REPO, SCRIPTS, cli_flags, declared, load, scalars, small_args, source
+from rl_utils import make_env
 
 COMMON_TAGS = {"eval/episodic_return", "charts/episodic_return", "charts/episodic_length", "charts/SPS"}
 CRITIC_TAGS = {"losses/qf_loss", "losses/qf_values"}
@@ -66,6 +67,8 @@ def test_short_run_writes_every_tag(script, env_id, tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_save_model_writes_loadable_weights(script, tmp_path, monkeypatch):
+    """The model is a plain single-seed state_dict per network: the trained actor's, loadable as it is into a fresh
+    network of the script."""
     monkeypatch.chdir(tmp_path)
     module = load(script)
     result = module.main(small_args(module, env_id="Pendulum-v1", save_model=True, run_name="run"))
@@ -75,6 +78,9 @@ def test_save_model_writes_loadable_weights(script, tmp_path, monkeypatch):
     for name, tensor in actor.state_dict().items():
         torch.testing.assert_close(saved["actor"][name], tensor)
     assert ("normalizer" if script in ON_POLICY else "qf") in saved
+    env = make_env("Pendulum-v1", seed=0)
+    fresh = module.Agent(3, 1) if script in ON_POLICY else module.Actor(3, env.action_space)
+    fresh.load_state_dict(saved["actor"])  # strict: the same names and shapes, no seeds dimension
 
 
 def run_script(script, *flags, env=None):

@@ -246,18 +246,23 @@ def test_ebd_clips_the_agent_apart_from_the_forward_models(monkeypatch, model_sc
         torch.testing.assert_close(q, p, msg=name)
 
 
+@pytest.mark.parametrize("clip_vloss", [True, False])
 @pytest.mark.parametrize("module", EXPLORERS, ids=["rnd", "ebd"])
-def test_the_intrinsic_value_head_adds_its_own_unclipped_half_squared_error(module):
-    """PPO's loss with a second value head: value_loss = PPO's (clipped) extrinsic value loss + 0.5 * the
-    intrinsic head's mean squared error, which is never clipped."""
+def test_the_intrinsic_value_head_adds_its_own_unclipped_half_squared_error(module, clip_vloss):
+    """PPO's loss with a second value head: value_loss = PPO's (clipped or not) extrinsic value loss + 0.5 * the
+    intrinsic head's mean squared error, which is never clipped; the loss takes vf_coef of their sum."""
     torch.manual_seed(0)
-    agent, args = module.Agent(3, 2), module.Args(clip_coef=0.2, clip_vloss=True)
+    agent, args = module.Agent(3, 2), module.Args(clip_coef=0.2, clip_vloss=clip_vloss, vf_coef=0.7)
     obs, actions = torch.randn(16, 3), torch.randn(16, 2)
     with torch.no_grad():
         _, logprob, _, value, int_value = agent.get_action_and_value(obs, actions)
-    common = (obs, actions, logprob, torch.randn(16), value + 1.0, value)  # returns 1 above the value: clipped
-    _, exact = module.ppo_loss(agent, *common, int_value, args)
-    _, off = module.ppo_loss(agent, *common, int_value + 10.0, args)  # 10 away: 0.5 * 100 more, no clipping
-    assert exact["value_loss"].item() == pytest.approx(0.5 * 1.0, rel=1e-5)  # the extrinsic head alone
+    # returns 1 above the value, old values .5 below it: the clipped extrinsic error is 1.3 (squared 1.69), the plain 1
+    common = (obs, actions, logprob, torch.randn(16), value + 1.0, value - 0.5)
+    exact_loss, exact = module.ppo_loss(agent, *common, int_value, args)
+    off_loss, off = module.ppo_loss(agent, *common, int_value + 10.0, args)  # 10 away: 0.5 * 100 more, not clipped
+    assert exact["value_loss"].item() == pytest.approx(
+        0.5 * (1.69 if clip_vloss else 1.0), rel=1e-5
+    )  # the extrinsic head alone
     assert off["value_loss"].item() - exact["value_loss"].item() == pytest.approx(50.0, rel=1e-5)
+    assert (off_loss - exact_loss).item() == pytest.approx(0.7 * 50.0, rel=1e-5)
     assert off["policy_loss"] == exact["policy_loss"]

@@ -1,9 +1,11 @@
-"""--num-seeds: several seeds trained side by side in one process, their networks stacked. The seeds must stay
-independent runs (nothing one seed sees reaches another), each seed's update must be the one-seed update, and each
-seed must be an ordinary run to every tool: its own folder, evaluations, checkpoint, resume and saved model."""
+"""--num-seeds: several seeds trained side by side in one process, their networks stacked (rl_utils.stack_seeds) and
+the scripts' one-seed functions run for all of them at once (rl_utils.per_seed, torch.func.vmap). The seeds must stay
+independent runs (nothing one seed sees reaches another), each seed's update must be the one-seed update with its
+loss summed, not averaged, into the total, and each seed must be an ordinary run to every tool: its own folder,
+evaluations, checkpoint, resume and saved model."""
 
 import copy
-import inspect
+import dataclasses
 import os
 import random
 import signal
@@ -17,14 +19,18 @@ import torch
 import torch.nn as nn
 
 from conftest import OFF_POLICY, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
+from rl_utils import SeedEnvs, evaluate, per_seed, stack_seeds
+from rl_utils import checkpoints as ckpt
+from rl_utils.cli import validate
 
 
 def accepts_many_seeds(script) -> bool:
     module = load(script)
-    if "num_seeds" not in inspect.signature(module.Args).parameters:
+    if "num_seeds" not in {f.name for f in dataclasses.fields(module.Args)}:
         return False
+    args = module.Args(num_seeds=2)
     try:
-        module.check_args(module.Args(num_seeds=2))
+        validate(args, module.check_args(args) if hasattr(module, "check_args") else [])
     except SystemExit:
         return False
     return True
@@ -36,6 +42,57 @@ ENV = "dm_control/cartpole-swingup-v0"
 
 def test_the_paper_algorithms_train_many_seeds():
     assert {"td3", "oparl", "sac"} <= set(MANY_SEEDS)
+
+
+# per_seed itself, on a toy network
+class Toy(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.fc = nn.Linear(3, 2)
+
+    def forward(self, x):
+        return self.fc(x)
+
+
+def toy_loss(x, net: Toy, scale: float):
+    return (net(x) * scale).pow(2).mean(), net(x)
+
+
+def test_per_seed_with_one_seed_runs_the_function_as_written():
+    torch.manual_seed(0)
+    (net,) = stack_seeds(lambda: [Toy()], [7], torch.device("cpu"))
+    assert net.fc.weight.shape == (2, 3)  # not stacked: the module as built
+    x = torch.randn(1, 5, 3)
+    loss, out = per_seed(toy_loss)(x, net, 2.0)
+    expected_loss, expected_out = toy_loss(x[0], net, 2.0)
+    assert loss.shape == (1,) and torch.equal(loss[0], expected_loss) and torch.equal(out[0], expected_out)
+
+
+def test_per_seed_gives_each_seed_its_own_function_value_and_gradient_under_a_sum():
+    (stacked,) = stack_seeds(lambda: [Toy()], [4, 5, 6], torch.device("cpu"))
+    assert stacked.fc.weight.shape == (3, 2, 3)
+    x = torch.randn(3, 5, 3)
+    loss, _ = per_seed(toy_loss)(x, stacked, 2.0)
+    loss.sum().backward()
+    for k, seed in enumerate([4, 5, 6]):
+        torch.manual_seed(seed)
+        alone = Toy()  # seed k's initial weights are a single-seed run's
+        assert torch.equal(alone.fc.weight, stacked.fc.weight[k].detach())
+        alone_loss, _ = toy_loss(x[k], alone, 2.0)
+        alone_loss.backward()
+        torch.testing.assert_close(loss[k], alone_loss)
+        torch.testing.assert_close(stacked.fc.weight.grad[k], alone.fc.weight.grad)  # a mean over seeds: a third
+
+
+def test_per_seed_draws_differently_for_each_seed_and_reproducibly():
+    noisy = per_seed(lambda x: x + torch.randn_like(x))
+    x = torch.zeros(3, 1000)
+    torch.manual_seed(0)
+    first = noisy(x)
+    assert not torch.equal(first[0], first[1]) and not torch.equal(first[1], first[2])
+    assert abs(float(torch.corrcoef(first[:2])[0, 1])) < 0.1
+    torch.manual_seed(0)
+    assert torch.equal(noisy(x), first)
 
 
 @pytest.fixture(scope="module")
@@ -59,17 +116,32 @@ def short_run(tmp_path_factory):
     return get
 
 
+def modules(result) -> dict:
+    """The networks in main's result, each once (OPARL returns its pessimistic actor also as "actor")."""
+    found = {}
+    for name, net in result.items():
+        if isinstance(net, nn.Module) and all(net is not other for other in found.values()):
+            found[name] = net
+    return found
+
+
+def optimizers(result) -> dict:
+    return {k: v for k, v in result.items() if isinstance(v, torch.optim.Optimizer)}
+
+
+def tensor_parts(result) -> dict:
+    """The tensors main trains outside its networks (SAC's log_alpha), by the checkpoint's name for them."""
+    return {"log_alpha": result["a_optimizer"].param_groups[0]["params"][0]} if "a_optimizer" in result else {}
+
+
 def stacked_state(result) -> dict:
-    """Copies of every network's and optimizer's state in main's result, of the tensors it returns and the
-    optimizers' parameters (SAC's alpha and log_alpha), and of its seeds' generators."""
-    optimizers = {k: v for k, v in result.items() if isinstance(v, torch.optim.Optimizer)}
-    tensors = [t for t in result.values() if isinstance(t, torch.Tensor)]
-    tensors += [p for opt in optimizers.values() for group in opt.param_groups for p in group["params"]]
+    """Copies of every network's, optimizer's and tensor's state in main's result, and of the global generator's."""
+    tensors = [t for t in result.values() if isinstance(t, torch.Tensor)] + list(tensor_parts(result).values())
     return {
         "nets": copy.deepcopy({k: n.state_dict() for k, n in modules(result).items()}),
-        "opt": copy.deepcopy({k: o.state_dict() for k, o in optimizers.items()}),
+        "opt": copy.deepcopy({k: o.state_dict() for k, o in optimizers(result).items()}),
         "tensors": [(t, t.detach().clone()) for t in tensors],
-        "generators": [g.get_state() for g in result["generators"]],
+        "rng": torch.get_rng_state(),
     }
 
 
@@ -81,33 +153,18 @@ def load_state(result, state):
     with torch.no_grad():
         for tensor, value in state["tensors"]:
             tensor.copy_(value)
-    for generator, generator_state in zip(result["generators"], state["generators"]):
-        generator.set_state(generator_state)
+    torch.set_rng_state(state["rng"])
 
 
 def one_update(result, batch):
-    """One training iteration through main's own update, with every optional part on (policy step, target step); it
-    draws from the seeds' own generators."""
-    flags = len(inspect.signature(result["update"]).parameters) - 1
+    """One training iteration through main's own update, with every optional part on (policy step, target step)."""
+    flags = result["update"].__code__.co_argcount - 1
     return result["update"](batch, *[True] * flags)
 
 
-def modules(result) -> dict:
-    """The networks in main's result, each once (OPARL returns its pessimistic actor also as "actor")."""
-    found = {}
-    for name, net in result.items():
-        if isinstance(net, nn.Module) and all(net is not other for other in found.values()):
-            found[name] = net
-    return found
-
-
-def params_of(result) -> dict:
-    return {f"{name}.{p}": t for name, net in modules(result).items() for p, t in net.named_parameters()}
-
-
-def seed_params(result, k, num_seeds) -> dict:
-    """Seed k's cut of every network's parameters."""
-    return {f"{name}.{p}": t.chunk(num_seeds)[k] for name, net in modules(result).items() for p, t in net.named_parameters()}
+def seed_params(result, k) -> dict:
+    """Seed k's cut of every (stacked) network's parameters."""
+    return {f"{name}.{p}": t[k] for name, net in modules(result).items() for p, t in net.named_parameters()}
 
 
 @pytest.mark.parametrize("script", [pytest.param(s, marks=pytest.mark.xdist_group(f"many-{s}")) for s in MANY_SEEDS])
@@ -116,115 +173,119 @@ def test_changing_one_seeds_data_and_weights_leaves_the_others_bit_identical(scr
     batch = result["rb"].sample(64)
     before = stacked_state(result)
     one_update(result, batch)
-    reference = {k: [t.clone() for t in seed_params(result, k, 3).values()] for k in range(3)}
+    reference = {k: [t.clone() for t in seed_params(result, k).values()] for k in range(3)}
 
-    load_state(result, before)
+    load_state(result, before)  # the same draws again
     with torch.no_grad():  # seed 2 (index 1) gets other weights and other data
         for net in modules(result).values():
             for p in net.parameters():
-                p.chunk(3)[1].mul_(1.5)
+                p[1].mul_(1.5)
     changed = type(batch)(*(field.clone() for field in batch))
     changed.rewards[1] += 10.0
     changed.observations[1] *= -1
     one_update(result, changed)
     for k in (0, 2):
-        for name, a, b in zip(seed_params(result, k, 3), reference[k], seed_params(result, k, 3).values()):
+        for name, a, b in zip(seed_params(result, k), reference[k], seed_params(result, k).values()):
             assert torch.equal(a, b), f"seed index {k}'s {name} changed with seed index 1's data"
-    assert any(not torch.equal(a, b) for a, b in zip(reference[1], seed_params(result, 1, 3).values()))
+    assert any(not torch.equal(a, b) for a, b in zip(reference[1], seed_params(result, 1).values()))
     load_state(result, before)  # the shared run as it was, for the other tests
 
 
 @pytest.mark.parametrize("script", [pytest.param(s, marks=pytest.mark.xdist_group(f"many-{s}")) for s in MANY_SEEDS])
-def test_a_seeds_update_is_the_one_seed_update_on_the_same_batch_and_noise(script, short_run, monkeypatch):
-    module = load(script)
+def test_a_seeds_update_is_the_one_seed_update_on_the_same_batch(script, short_run, monkeypatch):
+    """With the noise taken out (every torch.randn_like a zero), seed 2 of 3 updates exactly as a one-seed run in
+    seed 2's state does on seed 2's batch: the weights, and the gradients (a mean over seeds would give a third)."""
     many, one = short_run(script, 3), short_run(script, 1)
-    nets = modules(many)
-    optimizers = {k: v for k, v in many.items() if isinstance(v, torch.optim.Optimizer)}
-    batch = many["rb"].sample(64)
-    # seed index 1's state before the update (its generator's too), as a one-seed checkpoint, into the one-seed run
-    state = module.snapshot(module.Args(), [], 0, nets, optimizers, buffer=many["rb"], eval_returns=[[], [], []])
-    state = {**state, "log_alpha": torch.zeros(3, 1), "generators": torch.stack([g.get_state() for g in many["generators"]])}
-    share = module.split_seeds(state, nets, ["a", "b", "c"])[1]
-    one_nets = {k: one[k] for k in nets}
-    one_optimizers = {k: one[k] for k in optimizers}
-    module.restore(module.join_seeds([share], one_nets), [], one_nets, one_optimizers)
-    one["generators"][0].set_state(share["generators"][0])
-    if "alpha" in many:  # SAC's entropy coefficient: seed index 1's into the one-seed run
+    before_many, before_one = stacked_state(many), stacked_state(one)
+    nets, opts = modules(many), optimizers(many)
+    parts = {"buffer": many["rb"], **tensor_parts(many)}
+    state = ckpt.snapshot(f"{script}_continuous_action.py", load(script).Args(), [], 0, nets, opts, parts)
+    share = ckpt.split_seeds(state, nets, parts, [[], [], []], ["a", "b", "c"])[1]  # seed index 1, as a checkpoint
+    one_parts = {"buffer": one["rb"], **tensor_parts(one)}
+    ckpt.restore(share, [], {k: one[k] for k in nets}, {k: one[k] for k in opts}, one_parts)
+    if "alpha" in many:  # SAC's entropy coefficient follows log_alpha
         with torch.no_grad():
             one["alpha"].copy_(many["alpha"][1:2])
-            one["a_optimizer"].param_groups[0]["params"][0].copy_(many["a_optimizer"].param_groups[0]["params"][0][1:2])
 
+    monkeypatch.setattr(torch, "randn_like", torch.zeros_like)
+    batch = many["rb"].sample(64)
     one_update(many, batch)
     one_update(one, type(batch)(*(field[1:2] for field in batch)))
-    assert torch.equal(one["generators"][0].get_state(), many["generators"][1].get_state()), "they drew differently"
-    for (name, a), b in zip(seed_params(many, 1, 3).items(), seed_params(one, 0, 1).values()):
-        torch.testing.assert_close(b, a, rtol=1e-5, atol=2e-5, msg=f"{name}: seed 2 of 3 against the same seed alone")
+    # to a third of an Adam step (lr 3e-4): where a gradient is near zero, rounding can flip the sign of a step
+    for (name, a), b in zip(seed_params(many, 1).items(), params(one).values()):
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-4, msg=f"{name}: seed 2 of 3 against the same seed alone")
     # The gradients too: a mean over seeds instead of the sum would make them a third (a difference the weights hide,
     # as Adam divides by the gradients' scale). The critics' agree to rounding; the actors' are taken through critics
     # already updated, whose last bits differ between the kernels, so they agree to less (a few percent).
     checked = 0
-    for (name, p_many), p_one in zip(params_of(many).items(), params_of(one).values()):
+    for (name, p_many), p_one in zip(params(many).items(), params(one).values()):
         if p_one.grad is not None:
-            error = (p_many.grad.chunk(3)[1] - p_one.grad).abs().max() / p_one.grad.abs().max()
+            error = (p_many.grad[1] - p_one.grad).abs().max() / p_one.grad.abs().max()
             assert error < (1e-4 if name.startswith("qf.") else 5e-2), f"{name}'s gradient differs by {error:.1e}"
             checked += name.startswith("qf.")
     assert checked
+    load_state(many, before_many)
+    load_state(one, before_one)
 
 
-def test_one_seed_layers_are_nn_linear_bit_for_bit():
-    """The stacked layer of one seed draws nn.Linear's initial weights and uses its kernel, which is why a run with
-    --num-seeds 1 gives the single-seed series exactly."""
-    for script in OFF_POLICY:
-        module = load(script)
-        if not hasattr(module, "SeedLinear"):
-            continue
-        torch.manual_seed(0)
-        stacked = module.SeedLinear(17, 32)
-        torch.manual_seed(0)
-        linear = nn.Linear(17, 32)
-        assert torch.equal(stacked.weight[0], linear.weight) and torch.equal(stacked.bias[0], linear.bias)
-        x = torch.randn(5, 17)
-        assert torch.equal(stacked(x), linear(x))
+def params(result) -> dict:
+    return {f"{name}.{p}": t for name, net in modules(result).items() for p, t in net.named_parameters()}
 
 
-# Hopper: its seeds' episodes end at different steps, so resets are per seed too; cartpole-swingup (TD3): the task
-# where 3-seed processes that shared one generator measured lower than single-seed runs (docs/results.md)
-REPLAY_CASES = [(script, "Hopper-v4") for script in MANY_SEEDS] + [(script, ENV) for script in MANY_SEEDS if script == "td3"]
+class PerturbedSeedEnvs(SeedEnvs):
+    """SeedEnvs whose second env's rewards are offset: another seed's data, from the environment on."""
+
+    def step(self, actions):
+        next_obs, rewards, terminations, truncations, infos = super().step(actions)
+        if len(rewards) == 3:
+            rewards = rewards.copy()
+            rewards[1] += 5.0
+        return next_obs, rewards, terminations, truncations, infos
 
 
-@pytest.mark.parametrize("script, env_id", REPLAY_CASES)
-def test_a_seed_of_a_process_trains_as_that_seed_alone(script, env_id, tmp_path, monkeypatch):
-    """The whole loop, not one update: seed 3 of a 3-seed process draws what a single-seed run of seed 3 draws (its
-    initial weights, batches and noise), so the two runs' replay buffers, weights and evaluations agree to the rounding
-    of the batched kernels, through evaluations and checkpoints."""
+@pytest.mark.parametrize("script", MANY_SEEDS)
+def test_another_seeds_environment_leaves_a_seeds_whole_run_bit_identical(script, tmp_path, monkeypatch):
+    """The whole loop, not one update: a 3-seed process whose second seed sees other rewards gives the first and the
+    third seed the same replay buffer, weights and evaluations bit for bit, through evaluations, checkpoints and (for
+    OPARL) parameter resets, on Hopper, whose seeds' episodes end at different steps."""
     module = load(script)
     monkeypatch.chdir(tmp_path)
-    args = {
-        "env_id": env_id,
-        "total_timesteps": 360,
-        "learning_starts": 300,
-        "eval_frequency": 120,
-        "checkpoint_frequency": 50,  # checkpoints are taken mid-training: they must not disturb it
-        "run_name": "r{seed}",
-    }
+    args = {"env_id": "Hopper-v4", "total_timesteps": 360, "learning_starts": 300, "eval_frequency": 120}
+    args |= {"checkpoint_frequency": 50, "num_seeds": 3}
     if script == "oparl":
         args["reset_frequency"] = 25  # two resets (iterations 25 and 50) of every seed's optimistic actor at once
-    many = module.main(small_args(module, seed=1, num_seeds=3, **args))
-    one = module.main(small_args(module, seed=3, **args))
-    assert torch.equal(one["generators"][0].get_state(), many["generators"][2].get_state()), "they drew differently"
-    size = one["rb"].size
-    assert size == many["rb"].size == 360
-    torch.testing.assert_close(one["rb"].storage[0, :size], many["rb"].storage[2, :size], rtol=1e-4, atol=1e-4)
-    for (name, a), b in zip(seed_params(many, 2, 3).items(), seed_params(one, 0, 1).values()):
-        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=f"{name}: seed 3 of 3 against seed 3 alone")
-    assert [s for s, _ in one["eval_returns"]] == [s for s, _ in many["seeds_eval_returns"][2]] == [0, 120, 240, 360]
-    assert [r for _, r in one["eval_returns"]] == pytest.approx([r for _, r in many["seeds_eval_returns"][2]], rel=1e-3)
+    plain = module.main(small_args(module, run_name="plain{seed}", **args))
+    monkeypatch.setattr(module, "SeedEnvs", PerturbedSeedEnvs)
+    perturbed = module.main(small_args(module, run_name="perturbed{seed}", **args))
+    assert not torch.equal(plain["rb"].storage[1], perturbed["rb"].storage[1])  # seed index 1 did see other data
+    for k in (0, 2):
+        assert torch.equal(plain["rb"].storage[k], perturbed["rb"].storage[k])
+        for (name, a), b in zip(seed_params(plain, k).items(), seed_params(perturbed, k).values()):
+            assert torch.equal(a, b), f"seed index {k}'s {name}"
+        assert plain["seeds_eval_returns"][k] == perturbed["seeds_eval_returns"][k]
+    assert [s for s, _ in plain["seeds_eval_returns"][2]] == [0, 120, 240, 360]
+
+
+@pytest.mark.parametrize("script", MANY_SEEDS)
+def test_a_seeds_initial_weights_are_those_of_a_single_seed_run_bit_for_bit(script):
+    module = load(script)
+    space = gym.spaces.Box(-np.ones(2, np.float32), np.ones(2, np.float32))
+
+    def networks():
+        critics = [module.QEnsemble(5, 2)] + ([module.QEnsemble(5, 2, style="td3")] if script == "oparl" else [])
+        return [module.Actor(5, space), *critics]
+
+    stacked = stack_seeds(networks, [4, 5, 6], torch.device("cpu"))
+    torch.manual_seed(5)
+    for net, alone in zip(stacked, networks()):
+        for (name, p), q in zip(net.named_parameters(), alone.parameters()):
+            assert torch.equal(p[1], q), f"{type(alone).__name__}.{name}"
 
 
 @pytest.mark.parametrize("script", MANY_SEEDS)
 def test_each_seed_is_an_ordinary_run(script, tmp_path):
-    """Own folder, evaluation schedule and saved model; the saved actor is that seed's and evaluates to its logged
-    return; every seed learns its own weights."""
+    """Own folder, evaluation schedule and saved model; the saved actor is that seed's, a one-seed actor, and evaluates
+    to its logged return; every seed learns its own weights."""
     module = load(script)
     flags = cli_flags(script, total_timesteps=600, learning_starts=300, batch_size=64, eval_frequency=300, eval_episodes=1)
     result = subprocess.run(
@@ -244,10 +305,11 @@ def test_each_seed_is_an_ordinary_run(script, tmp_path):
         logged = scalars(str(run_dir))["eval/episodic_return"]
         assert [step for step, _ in logged] == [0, 300, 600]
         saved = torch.load(run_dir / f"{script}_continuous_action.cleanrl_model", weights_only=True)
-        env = module.make_env(ENV, seed + 100)
-        actor = module.Actor(int(np.prod(env.observation_space.shape)), env.action_space)
+        envs = SeedEnvs(ENV, [seed + 100])
+        actor = module.Actor(envs.obs_dim, envs.action_space)
         actor.load_state_dict(saved["actor"])  # a one-seed actor, as a single-seed run saves it
-        returns = module.evaluate(actor, [env], 1, [seed + 100])
+        act = actor.deterministic_action if hasattr(actor, "deterministic_action") else actor
+        returns = evaluate(lambda obs: act(torch.as_tensor(obs)).detach().numpy(), envs, [seed + 100], 1)
         assert returns.mean() == pytest.approx(logged[-1][1], rel=1e-4)
         actors.append(saved["actor"])
     assert any(not torch.equal(actors[0][k], actors[1][k]) for k in actors[0])
@@ -277,7 +339,7 @@ def test_a_killed_many_seed_process_resumes_identical(script, env_id, tmp_path):
     killed.send_signal(signal.SIGKILL)
     assert killed.wait() == -signal.SIGKILL, "the run ended before the kill: the comparison would test nothing"
     killed_at = torch.load(checkpoints[0], weights_only=True)["global_step"]
-    assert killed_at < 1500
+    assert 500 < killed_at < 1500  # after the optimizers have stepped
     resumed = subprocess.run(
         script_command(script, "--resume", "runs/killed2", "--save-model"),
         cwd=tmp_path,
@@ -312,21 +374,36 @@ def two_seed_run(tmp_path_factory):
 @pytest.mark.xdist_group("two-seed-run")
 def test_a_kill_between_the_seeds_checkpoint_renames_is_finished_on_resume(two_seed_run, monkeypatch):
     script, cwd = two_seed_run
-    module = load(script)
+    name = f"{script}_continuous_action.py"
     monkeypatch.chdir(cwd)
     second = cwd / "runs" / "s2" / "checkpoint.pt"
     new = torch.load(second, weights_only=True)
     os.replace(second, str(second) + ".tmp")  # seed 2's new checkpoint written but not yet renamed ...
     torch.save({**new, "global_step": new["global_step"] - 100}, second)  # ... over its old one
-    checkpoints = module.load_checkpoints("runs/s1")
+    checkpoints = ckpt.load_checkpoints("runs/s1", name)
     assert [c["global_step"] for c in checkpoints] == [new["global_step"]] * 2
     assert torch.load(second, weights_only=True)["global_step"] == new["global_step"] and not os.path.exists(
         str(second) + ".tmp"
     )
     torch.save({**new, "global_step": new["global_step"] - 100}, second)  # old, and no new one beside it
     with pytest.raises(SystemExit, match="holds no checkpoint at step"):
-        module.load_checkpoints("runs/s1")
+        ckpt.load_checkpoints("runs/s1", name)
     torch.save(new, second)
+
+
+@pytest.mark.xdist_group("two-seed-run")
+def test_a_seeds_checkpoint_is_a_single_seed_checkpoint_in_form(two_seed_run):
+    """Each seed's cut holds plain (unstacked) state dicts, its own buffer rows, env and evaluations."""
+    script, cwd = two_seed_run
+    one, two = (torch.load(cwd / "runs" / f"s{seed}" / "checkpoint.pt", weights_only=True) for seed in (1, 2))
+    module = load(script)
+    space = gym.spaces.Box(-np.ones(1, np.float32), 2 * np.ones(1, np.float32))
+    actor = next(name for name in one["nets"] if name.endswith("actor"))  # OPARL's pessimistic one first
+    for checkpoint in (one, two):
+        module.Actor(3, space).load_state_dict(checkpoint["nets"][actor])  # Pendulum: 3 observations, 1 action
+        assert checkpoint["buffer"]["rows"].shape[0] == 1 and len(checkpoint["envs"]) == 1
+    assert not torch.equal(one["nets"][actor]["fc1.weight"], two["nets"][actor]["fc1.weight"])
+    assert one["eval_returns"] != two["eval_returns"] and [one["seed_index"], two["seed_index"]] == [0, 1]
 
 
 @pytest.mark.xdist_group("two-seed-run")
@@ -334,6 +411,9 @@ def test_bad_many_seed_input_is_one_line(two_seed_run, monkeypatch, tmp_path):
     script, cwd = two_seed_run
     assert "--num-seeds must be >= 1" in refusal(script, ["--num-seeds", "0"], tmp_path, monkeypatch)
     assert "write {seed}" in refusal(script, ["--num-seeds", "2", "--run-name", "same"], tmp_path, monkeypatch)
+    assert "write {seed} in its last part" in refusal(
+        script, ["--num-seeds", "2", "--run-name", "seed{seed}/run"], tmp_path, monkeypatch
+    )  # two seeds' folders named alike would collide on resume
     assert "--track" in refusal(script, ["--num-seeds", "2", "--track"], tmp_path, monkeypatch)
     message = refusal(script, ["--resume", "runs/s1", "--num-seeds", "3"], cwd, monkeypatch)
     assert "--num-seeds 3 (run: 2)" in message
@@ -342,92 +422,41 @@ def test_bad_many_seed_input_is_one_line(two_seed_run, monkeypatch, tmp_path):
         assert "--num-seeds" in refusal(other, ["--num-seeds", "2"], tmp_path, monkeypatch)
 
 
+@pytest.mark.xdist_group("two-seed-run")
+def test_older_checkpoints_are_refused_in_one_line(two_seed_run, monkeypatch, tmp_path):
+    script, cwd = two_seed_run
+    old = {k: v for k, v in torch.load(cwd / "runs" / "s1" / "checkpoint.pt", weights_only=True).items() if k != "format"}
+    (tmp_path / "runs" / "old").mkdir(parents=True)
+    torch.save(old, tmp_path / "runs" / "old" / "checkpoint.pt")
+    assert "written by an older" in refusal(script, ["--resume", "runs/old"], tmp_path, monkeypatch)
+
+
 @pytest.mark.parametrize("script", MANY_SEEDS)
 def test_evaluation_draws_nothing(script):
     """Evaluation steps every seed's env until the last seed's episodes end (Hopper's end at different steps): a draw
-    there would make one seed's training draws depend on the others' episodes (SAC's get_action samples; evaluations
-    take its deterministic_action instead)."""
+    there would make one seed's training draws depend on the others' episodes (SAC evaluates its deterministic action)."""
     module = load(script)
-    envs = [module.make_env("Hopper-v4", seed) for seed in (101, 102)]
-    actor = module.Actor(int(np.prod(envs[0].observation_space.shape)), envs[0].action_space, generators=[None, None])
+    envs = SeedEnvs("Hopper-v4", [101, 102])
+    (actor,) = stack_seeds(lambda: [module.Actor(envs.obs_dim, envs.action_space)], [1, 2], torch.device("cpu"))
+    act = per_seed(actor.deterministic_action if hasattr(actor, "deterministic_action") else actor)
     before = torch.get_rng_state()
-    returns = module.evaluate(actor, envs, 2, [101, 102])
+    returns = evaluate(lambda obs: act(torch.as_tensor(obs)).detach().numpy(), envs, [101, 102], 2)
     assert returns.shape == (2, 2)
     assert torch.equal(torch.get_rng_state(), before)
 
 
-@pytest.mark.parametrize("script", MANY_SEEDS)
-def test_a_seeds_initial_weights_are_those_of_a_single_seed_run_bit_for_bit(script):
-    """Each network draws each seed's share of its initial weights from that seed's generator, in the order a
-    single-seed run draws them from the global generator seeded alike."""
-    module = load(script)
-    space = gym.spaces.Box(-np.ones(2, np.float32), np.ones(2, np.float32))
-    makers = [lambda g: module.Actor(5, space, g), lambda g: module.QEnsemble(5, 2, generators=g)]
-    if script == "oparl":  # both critic styles
-        makers.append(lambda g: module.QEnsemble(5, 2, style="td3", generators=g))
-    for make in makers:
-        stacked = make([torch.Generator().manual_seed(seed) for seed in (4, 5, 6)])
-        torch.manual_seed(5)
-        alone = make((None,))
-        for (name, p), q in zip(stacked.named_parameters(), alone.parameters()):
-            assert torch.equal(p.chunk(3)[1], q), f"{type(alone).__name__}.{name}"
+def test_each_seeds_batch_comes_from_its_own_transitions():
+    from rl_utils import ReplayBuffer
 
-
-@pytest.mark.xdist_group("two-seed-run")
-def test_older_checkpoints_and_folder_templates_are_refused_in_one_line(two_seed_run, monkeypatch, tmp_path):
-    script, cwd = two_seed_run
-    message = refusal(script, ["--num-seeds", "2", "--run-name", "seed{seed}/run"], tmp_path, monkeypatch)
-    assert "write {seed} in its last part" in message  # two seeds' folders named alike would collide on resume
-    old = {k: v for k, v in torch.load(cwd / "runs" / "s1" / "checkpoint.pt", weights_only=True).items() if k != "envs"}
-    (tmp_path / "runs" / "old").mkdir(parents=True)
-    torch.save(old, tmp_path / "runs" / "old" / "checkpoint.pt")
-    assert "written by an older" in refusal(script, ["--resume", "runs/old"], tmp_path, monkeypatch)
-    for seed in (1, 2):  # both seeds' checkpoints from before the seeds had generators of their own
-        old = {k: v for k, v in torch.load(cwd / "runs" / f"s{seed}" / "checkpoint.pt", weights_only=True).items()}
-        del old["generators"]
-        (tmp_path / "runs" / f"s{seed}").mkdir(parents=True, exist_ok=True)
-        torch.save(old, tmp_path / "runs" / f"s{seed}" / "checkpoint.pt")
-    assert "generators of its own" in refusal(script, ["--resume", "runs/s1"], tmp_path, monkeypatch)
-
-
-def test_a_checkpoint_from_another_kind_of_device_resumes_with_new_generators(capsys):
-    """A GPU run's generator states (16 bytes: seed and offset) cannot go into CPU generators, or the reverse: the
-    seeds' generators start anew from their seed and the step, and the run says so, instead of stopping."""
-    module = load(MANY_SEEDS[0])
-    generators = [torch.Generator().manual_seed(seed) for seed in (1, 2)]
-    saved = torch.stack([g.get_state() for g in generators])
-    expected = [torch.rand(3, generator=g) for g in generators]
-    module.restore_generators(generators, saved, 500)  # the same kind: exactly where they were
-    assert all(torch.equal(torch.rand(3, generator=g), e) for g, e in zip(generators, expected))
-    assert capsys.readouterr().out == ""
-    module.restore_generators(generators, torch.zeros(2, 16, dtype=torch.uint8), 500)  # CUDA generators' states
-    assert [g.initial_seed() for g in generators] == [1 * 1_000_003 + 500, 2 * 1_000_003 + 500]
-    assert "not cpu ones" in capsys.readouterr().out
-
-
-def test_one_seeds_networks_draw_their_initial_weights_in_the_scripts_order():
-    """Pins the draw order of a single-seed run's initial weights (which makes a run with --num-seeds 1 the run the
-    scripts gave before seeds had generators of their own): an actor's as three nn.Linear layers, each critic
-    ensemble's as w1, b1, w2, b2, w3, b3, each with the default init of nn.Linear (OPARL's release style: its weights
-    truncated-normal, its biases zero)."""
-    space = gym.spaces.Box(-np.ones(2, np.float32), np.ones(2, np.float32))
-    for script in MANY_SEEDS:
-        module = load(script)
-        torch.manual_seed(7)
-        actor = module.Actor(5, space, [torch.Generator().manual_seed(7)])
-        layers = [nn.Linear(5, 256), nn.Linear(256, 256)] + [nn.Linear(256, 2) for _ in range(len(list(actor.children())) - 2)]
-        for p, q in zip(actor.parameters(), [t for layer in layers for t in (layer.weight, layer.bias)]):
-            assert torch.equal(p[0], q), f"{script}: the actor's initial weights are not nn.Linear's, in order"
-        num_q = 5 if script == "oparl" else 2
-        torch.manual_seed(7)
-        qf = module.QEnsemble(5, 2, num_q, generators=[torch.Generator().manual_seed(7)])
-        expected = []
-        for fan_in, shape in [(7, (7, 256)), (7, (1, 256)), (256, (256, 256)), (256, (1, 256)), (256, (1, 256)), (256, (1,))]:
-            if script == "oparl":  # the release's style
-                bias = len(expected) % 2 == 1
-                t = torch.zeros(num_q, *shape)
-                expected.append(t if bias else nn.init.trunc_normal_(t, std=0.5 * fan_in**-0.5))
-            else:
-                expected.append(torch.empty(num_q, *shape).uniform_(-(fan_in**-0.5), fan_in**-0.5))
-        for name, p, q in zip(["w1", "b1", "w2", "b2", "w3", "b3"], qf.parameters(), expected):
-            assert torch.equal(p, q), f"{script}: the critics' {name} is not drawn where the scripts draw it"
+    rb = ReplayBuffer(8, 2, 1, 3, torch.device("cpu"))
+    for i in range(5):  # seed k's rows hold 100 k + i in every field
+        rows = np.array([100.0 * k + i for k in range(3)])
+        rb.add(np.stack([rows, rows], -1), rows[:, None], np.stack([rows, rows], -1), rows, rows * 0)
+    batch = rb.sample(4, 50)
+    assert batch.observations.shape == (3, 4, 50, 2) and batch.rewards.shape == (3, 4, 50)
+    for k in range(3):
+        seen = batch.rewards[k].unique()
+        assert set(seen.tolist()) <= {100.0 * k + i for i in range(5)} and len(seen) > 1
+        assert torch.equal(batch.observations[k, ..., 0], batch.rewards[k]) and torch.equal(
+            batch.actions[k, ..., 0], seen.new_tensor(batch.rewards[k])
+        )

@@ -1,4 +1,5 @@
-"""OPARL's mechanisms, each pinned so that changing it fails a test."""
+"""OPARL's mechanisms, each pinned so that changing it fails a test. The algorithm functions are written for one
+seed (main runs them through rl_utils.per_seed); so are these tests, but for the candidate choice with several seeds."""
 
 import gymnasium as gym
 import numpy as np
@@ -7,13 +8,14 @@ import torch
 
 import oparl_continuous_action as oparl
 from conftest import assert_ensemble_is_independent_mlps, scalars, small_args
+from rl_utils import Batch, evaluate, make_env, per_seed, stack_seeds
 
 OBS_DIM, ACTION_DIM = 3, 2
 SPACE = gym.spaces.Box(-2.0, 2.0, (ACTION_DIM,), np.float32)
 
 
 def batch_of(n, rewards, terminations):
-    return oparl.Batch(torch.randn(n, OBS_DIM), torch.rand(n, ACTION_DIM), torch.randn(n, OBS_DIM), rewards, terminations)
+    return Batch(torch.randn(n, OBS_DIM), torch.rand(n, ACTION_DIM), torch.randn(n, OBS_DIM), rewards, terminations)
 
 
 def test_td_target_takes_the_min_over_all_members():
@@ -69,13 +71,20 @@ def params(net):
     return [p.detach().clone() for p in net.parameters()]
 
 
+def actor_step(batch, pessimistic, optimistic, optimizers, qf):
+    """main's actor step: both losses from one ensemble pass, one backward pass of their sum, both optimizers."""
+    pessimistic_loss, optimistic_loss = oparl.policy_losses(batch, pessimistic, optimistic, qf)
+    oparl.optimize(pessimistic_loss + optimistic_loss, "actor_loss", *optimizers)
+    return pessimistic_loss.detach(), optimistic_loss.detach()
+
+
 def test_pessimistic_loss_is_the_min_and_optimistic_loss_the_max():
     pessimistic, optimistic, qf, optimizers = make_actors()
     batch = batch_of(128, torch.zeros(128), torch.zeros(128))
     obs = batch.observations
     with torch.no_grad():
         q_pes, q_opt = qf(obs, pessimistic(obs)), qf(obs, optimistic(obs))
-    pes_loss, opt_loss = oparl.update_actors(batch, pessimistic, optimistic, *optimizers, qf)
+    pes_loss, opt_loss = oparl.policy_losses(batch, pessimistic, optimistic, qf)
     assert pes_loss.item() == pytest.approx(-q_pes.min(0).values.mean().item(), rel=1e-5)
     assert opt_loss.item() == pytest.approx(-q_opt.max(0).values.mean().item(), rel=1e-5)
     assert abs(pes_loss.item() + q_pes.mean().item()) > 1e-3  # distinguishable from the mean
@@ -98,7 +107,7 @@ def test_each_actor_gets_only_its_own_loss_gradient():
     for name, actor in [("pes", pessimistic), ("opt", optimistic)]:
         for n, p in actor.named_parameters():
             p.register_hook(lambda g, key=(name, n): seen.__setitem__(key, g.clone()))
-    oparl.update_actors(batch, pessimistic, optimistic, *optimizers, qf)
+    actor_step(batch, pessimistic, optimistic, optimizers, qf)
     assert seen.keys() == expected.keys()
     for key in expected:
         torch.testing.assert_close(seen[key], expected[key])
@@ -109,7 +118,7 @@ def test_actor_losses_never_touch_the_critic():
     before = params(qf)
     batch = batch_of(64, torch.zeros(64), torch.zeros(64))
     for _ in range(5):
-        oparl.update_actors(batch, pessimistic, optimistic, *optimizers, qf)
+        actor_step(batch, pessimistic, optimistic, optimizers, qf)
     assert all(p.grad is None for p in qf.parameters())
     for a, b in zip(before, qf.parameters()):
         assert torch.equal(a, b)
@@ -126,7 +135,7 @@ def test_actors_climb_their_own_objective():
 
     pes_before, opt_before = objectives()
     for _ in range(50):
-        oparl.update_actors(batch, pessimistic, optimistic, *optimizers, qf)
+        actor_step(batch, pessimistic, optimistic, optimizers, qf)
     pes_after, opt_after = objectives()
     assert pes_after > pes_before and opt_after > opt_before
 
@@ -153,63 +162,74 @@ class SpreadByFirstAction:
     """A fake ensemble whose members disagree in proportion to |action[0]|."""
 
     def __call__(self, obs, actions):
-        return torch.stack([actions[..., 0] * k for k in range(5)], -2)  # [seeds, critics, candidates]
+        return torch.stack([actions[..., 0] * k for k in range(5)])  # [critics, candidates]
 
 
 def test_candidate_with_the_largest_ensemble_std_is_taken():
     torch.manual_seed(0)
     actor = oparl.Actor(OBS_DIM, SPACE)
-    obs = torch.randn(1, OBS_DIM)  # one seed
+    obs = torch.randn(OBS_DIM)  # one observation
+    args = oparl.Args(num_candidates=8, exploration_noise=0.5)
+    with torch.no_grad():
+        mean = actor(obs)  # the noiseless optimistic action
     for _ in range(20):
         rng_state = torch.get_rng_state()
-        chosen = oparl.optimistic_action(obs, actor, SpreadByFirstAction(), 8, 0.5, None)
+        chosen = oparl.optimistic_action(obs, actor, SpreadByFirstAction(), args)
         torch.set_rng_state(rng_state)  # replay the same 8 candidates
-        with torch.no_grad():
-            candidates = (actor(obs).expand(8, -1) + torch.normal(0, actor.action_scale.expand(8, -1) * 0.5)).clamp(-2, 2)
-        assert torch.equal(chosen[0], candidates[candidates[:, 0].abs().argmax()])
+        candidates = (mean + torch.randn(8, ACTION_DIM) * actor.action_scale * 0.5).clamp(-2, 2)
+        assert torch.equal(chosen, candidates[candidates[:, 0].abs().argmax()])
         assert candidates[:, 0].abs().unique().numel() == 8  # a real choice among distinct candidates
 
 
-class SpreadPerSeed:
-    """A fake 3-seed ensemble whose members disagree by another function of the action in each seed."""
-
-    @staticmethod
-    def key(k, actions):  # seed k's spread of actions [..., ACTION_DIM], up to a constant factor
-        return [actions[..., 0], actions[..., 1], actions[..., 0] - actions[..., 1]][k]
-
-    def __call__(self, obs, actions):
-        keys = torch.stack([self.key(k, actions[k]) for k in range(3)])  # [seeds, candidates]
-        return torch.stack([keys * m for m in range(5)], -2)  # [seeds, critics, candidates]
+def seed_networks(stacked: list, k: int, *fresh) -> list:
+    """Seed k's networks out of stack_seeds' stacked ones, as plain single-seed networks (`fresh`, overwritten)."""
+    for net, single in zip(stacked, fresh):
+        stacked_names = dict(net.named_parameters())  # the buffers (action bounds) are not stacked
+        single.load_state_dict({n: t[k] if n in stacked_names else t for n, t in net.state_dict().items()})
+    return list(fresh)
 
 
-def test_each_seed_of_a_process_takes_its_own_best_candidate():
-    """With 3 seeds, each seed draws its candidates from its own generator and takes the one its own critics spread
-    most on: the choice is made per seed, never one index for every seed or one seed's spread for all."""
-    actor = oparl.Actor(OBS_DIM, SPACE, [torch.Generator().manual_seed(s) for s in (1, 2, 3)])
-    obs = torch.randn(3, OBS_DIM, generator=torch.Generator().manual_seed(0))
-    generators = [torch.Generator().manual_seed(s) for s in (11, 12, 13)]
-    with torch.no_grad():
-        means = actor(obs)  # each seed's noiseless optimistic action
-    indices = []
-    for _ in range(20):
-        states = [g.get_state() for g in generators]
-        chosen = oparl.optimistic_action(obs, actor, SpreadPerSeed(), 8, 0.5, generators)
-        for k, state in enumerate(states):  # seed k's 8 candidates, replayed from its generator
-            noise = torch.randn(8, ACTION_DIM, generator=torch.Generator().set_state(state))
-            candidates = (means[k] + noise * actor.action_scale * 0.5).clamp(-2, 2)
-            best = SpreadPerSeed.key(k, candidates).abs().argmax()
-            assert torch.equal(chosen[k], candidates[best])
-            indices.append(best.item())
-    assert len(set(indices[0::3])) > 1 and indices[0::3] != indices[1::3]  # the seeds' choices differ
+def test_each_seed_takes_the_candidate_its_own_critics_spread_most_on(monkeypatch):
+    """With 3 seeds (networks stacked, optimistic_action run through per_seed, as main acts), each seed's action is
+    the single-seed function's on that seed's own actor and critics, given the same candidates: the choice is made
+    per seed, never one index for every seed or one seed's critics for all. (That the seeds draw different
+    candidates is rl_utils.per_seed's, tests/test_many_seeds.py.)"""
+    torch.manual_seed(0)
+    networks = lambda: [oparl.Actor(OBS_DIM, SPACE), oparl.QEnsemble(OBS_DIM, ACTION_DIM, num_q=5)]  # noqa: E731
+    stacked = stack_seeds(networks, [1, 2, 3], torch.device("cpu"))
+    assert stacked[1].w1.shape[:2] == (3, 5)  # 3 seeds of 5 critics
+    singles = [seed_networks(stacked, k, *networks()) for k in range(3)]
+    obs = torch.randn(3, OBS_DIM)
+    args = oparl.Args(num_candidates=8, exploration_noise=0.5)
+    choices, own_critics_matter = {0: [], 1: [], 2: []}, False
+    for draw in range(20):
+        torch.manual_seed(draw)
+        chosen = per_seed(oparl.optimistic_action)(obs, *stacked, args)
+        torch.manual_seed(draw)
+        noise = torch.randn(3, 8, ACTION_DIM)  # the seeds' candidate noise, as vmap draws it: seed after seed
+        for k, (actor, qf) in enumerate(singles):
+            with monkeypatch.context() as patch, torch.no_grad():
+                patch.setattr(torch, "randn_like", lambda x, seeds_noise=noise[k]: seeds_noise)  # the same candidates
+                single_seed = oparl.optimistic_action(obs[k], actor, qf, args)
+                candidates = (actor(obs[k]) + noise[k] * actor.action_scale * 0.5).clamp(-2, 2)
+                # the candidate each seed's critics spread most on, among seed k's candidates
+                best = [int(critics(obs[k].expand(8, -1), candidates).std(0).argmax()) for _, critics in singles]
+            torch.testing.assert_close(chosen[k], single_seed, rtol=0, atol=1e-6)
+            torch.testing.assert_close(chosen[k], candidates[best[k]], rtol=0, atol=1e-6)
+            choices[k].append(best[k])
+            own_critics_matter |= best != [best[k]] * 3
+    assert own_critics_matter  # another seed's critics would have chosen otherwise: the test tells them apart
+    assert len(set(choices[0])) > 1 and choices[0] != choices[1]  # not one index every time, nor for every seed
 
 
 def test_one_candidate_is_the_noisy_optimistic_action():
     torch.manual_seed(0)
     actor = oparl.Actor(OBS_DIM, SPACE)
-    obs = torch.randn(1, OBS_DIM)  # one seed
-    actions = torch.stack([oparl.optimistic_action(obs, actor, None, 1, 0.1, None)[0] for _ in range(2000)])
+    obs = torch.randn(OBS_DIM)  # one observation
+    args = oparl.Args(num_candidates=1, exploration_noise=0.1)
+    actions = torch.stack([oparl.optimistic_action(obs, actor, None, args) for _ in range(2000)])  # no critic pass
     with torch.no_grad():
-        torch.testing.assert_close(actions.mean(0), actor(obs)[0], atol=0.02, rtol=0)
+        torch.testing.assert_close(actions.mean(0), actor(obs), atol=0.02, rtol=0)
     torch.testing.assert_close(actions.std(0), torch.full((ACTION_DIM,), 0.2), atol=0.02, rtol=0)  # 0.1 * action scale 2
 
 
@@ -261,11 +281,15 @@ def test_realised_optimistic_share(ratio, tmp_path, monkeypatch):
 
 def test_evaluation_uses_the_pessimistic_actor_without_noise(tmp_path, monkeypatch):
     result = run(tmp_path, monkeypatch, "eval", exploration_noise=0.5, eval_episodes=2)
-    env = oparl.make_env("Pendulum-v1", seed=101)
+    env = make_env("Pendulum-v1", seed=101)
     logged = result["eval_returns"][-1][1]
+
+    def noiseless(actor):  # the actor, as a policy; it stays on the run's device (a GPU where there is one)
+        return lambda obs: actor(torch.as_tensor(obs, device=actor.action_scale.device)).detach().cpu().numpy()
+
     for _ in range(2):  # noiseless: the same returns every time
-        assert oparl.evaluate(result["actor"], [env], 2, [101]).mean() == pytest.approx(logged, abs=1e-9)
-    assert oparl.evaluate(result["optimistic_actor"], [env], 2, [101]).mean() != pytest.approx(logged, abs=1e-3)
+        assert evaluate(noiseless(result["actor"]), [env], [101], 2).mean() == pytest.approx(logged, abs=1e-9)
+    assert evaluate(noiseless(result["optimistic_actor"]), [env], [101], 2).mean() != pytest.approx(logged, abs=1e-3)
 
 
 def test_ablation_flags_change_what_they_say(tmp_path, monkeypatch):

@@ -1,4 +1,5 @@
-"""REDQ's defining parts: the random-subset min target, G critic updates per step, the mean-Q actor."""
+"""REDQ's defining parts: the random-subset min target, G critic updates per step, the mean-Q actor. The algorithm
+functions are written for one seed (main runs them through rl_utils.per_seed); so are these tests."""
 
 import copy
 
@@ -9,13 +10,14 @@ import torch
 
 import redq_continuous_action as redq
 from conftest import small_args
+from rl_utils import Batch
 
 OBS_DIM, ACTION_DIM = 3, 2
 SPACE = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
 
 
 def batch_of(n):
-    return redq.Batch(
+    return Batch(
         torch.randn(n, OBS_DIM),
         torch.rand(n, ACTION_DIM),
         torch.randn(n, OBS_DIM),
@@ -51,7 +53,8 @@ def test_actor_ascends_the_mean_of_all_critics():
     optimizer = torch.optim.Adam(actor.parameters(), lr=1e-3)
     batch, alpha = batch_of(128), torch.tensor(0.2)
     rng = torch.get_rng_state()
-    loss = redq.update_actor(batch, actor, optimizer, qf, alpha)
+    loss = redq.policy_loss(batch, actor, qf, alpha)
+    redq.optimize(loss, "actor_loss", optimizer)  # main's actor step
     torch.set_rng_state(rng)  # the same sample, from the weights the loss was computed with
     with torch.no_grad():
         pi, log_pi, _ = before.get_action(batch.observations)
@@ -59,6 +62,7 @@ def test_actor_ascends_the_mean_of_all_critics():
     assert loss.item() == pytest.approx((alpha * log_pi - q.mean(0)).mean().item(), rel=1e-5)
     assert loss.item() != pytest.approx((alpha * log_pi - q.min(0).values).mean().item(), rel=1e-3)
     assert all(p.grad is None for p in qf.parameters())
+    assert any(not torch.equal(a, b) for a, b in zip(before.parameters(), actor.parameters()))  # the actor stepped
 
 
 def test_utd_ratio_critic_updates_and_one_actor_update_per_step(tmp_path, monkeypatch):
@@ -94,7 +98,7 @@ def test_utd_ratio_critic_updates_and_one_actor_update_per_step(tmp_path, monkey
 def test_default_target_entropy_is_the_releases_per_task_value(env_id, flags, expected, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     seen = []
-    real_update = redq.update_alpha
-    monkeypatch.setattr(redq, "update_alpha", lambda *a: seen.append(a[4]) or real_update(*a))  # its target_entropy
+    real_loss = redq.alpha_loss_fn
+    monkeypatch.setattr(redq, "alpha_loss_fn", lambda *a: seen.append(a[3]) or real_loss(*a))  # its target_entropy
     redq.main(small_args(redq, env_id=env_id, total_timesteps=70, learning_starts=64, eval_frequency=70, **flags))
     assert seen and set(seen) == {expected}

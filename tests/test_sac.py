@@ -1,4 +1,5 @@
-"""SAC's parts: the squashed Gaussian, the entropy-regularised target, alpha, deterministic evaluation."""
+"""SAC's parts: the squashed Gaussian, the entropy-regularised target, alpha, deterministic evaluation. The algorithm
+functions are written for one seed (main runs them through rl_utils.per_seed); so are these tests."""
 
 import gymnasium as gym
 import numpy as np
@@ -7,6 +8,7 @@ import torch
 
 import sac_continuous_action as sac
 from conftest import assert_ensemble_is_independent_mlps, small_args
+from rl_utils import Batch, make_env, per_seed, stack_seeds
 
 OBS_DIM = 3
 SPACE = gym.spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 4.0], np.float32))
@@ -62,7 +64,7 @@ class FixedPolicy:
     def __init__(self, log_prob):
         self.log_prob = log_prob
 
-    def get_action(self, obs, generators=None):
+    def get_action(self, obs):
         return torch.zeros(len(obs), 2), self.log_prob, None
 
 
@@ -70,7 +72,7 @@ def test_target_subtracts_alpha_log_pi_from_the_min_and_bootstraps_unless_termin
     q = torch.tensor([[1.0, 5.0, -2.0], [3.0, 4.0, -3.0]])
     qf_target = lambda obs, actions: q  # noqa: E731
     log_pi = torch.tensor([-1.0, 2.0, 0.5])
-    batch = sac.Batch(
+    batch = Batch(
         torch.zeros(3, OBS_DIM),
         torch.zeros(3, 2),
         torch.zeros(3, OBS_DIM),
@@ -90,9 +92,9 @@ def test_alpha_rises_when_entropy_is_below_target_and_falls_above(log_std_raw, d
     actor = actor_with([0.0, 0.0], [log_std_raw, log_std_raw])
     log_alpha = torch.zeros(1, requires_grad=True)
     optimizer = torch.optim.Adam([log_alpha], lr=0.01)
-    batch = sac.Batch(torch.zeros(256, OBS_DIM), None, None, None, None)
-    for _ in range(10):
-        sac.update_alpha(batch, actor, log_alpha, optimizer, target_entropy=-2.0)
+    batch = Batch(torch.zeros(256, OBS_DIM), None, None, None, None)
+    for _ in range(10):  # main's alpha step: the loss, then optimize
+        sac.optimize(sac.alpha_loss_fn(batch, actor, log_alpha, target_entropy=-2.0), "alpha_loss", optimizer)
     assert np.sign(log_alpha.item()) == direction and abs(log_alpha.item()) > 0.05
 
 
@@ -100,9 +102,13 @@ def test_actor_update_leaves_the_critic_alone_and_lowers_its_loss():
     torch.manual_seed(0)
     actor, qf = sac.Actor(OBS_DIM, SPACE), sac.QEnsemble(OBS_DIM, 2)
     optimizer = torch.optim.Adam(actor.parameters(), lr=1e-3)
-    batch = sac.Batch(torch.randn(128, OBS_DIM), None, None, None, None)
+    batch = Batch(torch.randn(128, OBS_DIM), None, None, None, None)
     before = [p.detach().clone() for p in qf.parameters()]
-    losses = [sac.update_actor(batch, actor, optimizer, qf, torch.tensor(0.2)).item() for _ in range(100)]
+    losses = []
+    for _ in range(100):  # main's actor step: the loss, then optimize
+        loss = sac.policy_loss(batch, actor, qf, torch.tensor(0.2))
+        sac.optimize(loss, "actor_loss", optimizer)
+        losses.append(loss.item())
     assert np.mean(losses[-10:]) < np.mean(losses[:10])
     assert all(p.grad is None for p in qf.parameters())
     assert all(torch.equal(a, b) for a, b in zip(before, qf.parameters()))
@@ -121,7 +127,7 @@ def test_evaluation_acts_with_the_squashed_mean(tmp_path, monkeypatch):
             run_name="run",
         )
     )
-    actor, env = result["actor"], sac.make_env("Pendulum-v1", seed=101)
+    actor, env = result["actor"], make_env("Pendulum-v1", seed=101)
     by_hand = []
     for episode in range(2):
         obs, _ = env.reset(seed=101) if episode == 0 else env.reset()
@@ -163,9 +169,9 @@ def test_q_ensemble_members_are_independent_relu_mlps():
 def test_actor_loss_is_alpha_log_pi_minus_the_min_over_critics():
     torch.manual_seed(0)
     actor, qf = sac.Actor(OBS_DIM, SPACE), sac.QEnsemble(OBS_DIM, 2)
-    batch = sac.Batch(torch.randn(64, OBS_DIM), None, None, None, None)
+    batch = Batch(torch.randn(64, OBS_DIM), None, None, None, None)
     rng = torch.get_rng_state()
-    loss = sac.update_actor(batch, actor, torch.optim.SGD(actor.parameters(), lr=0.0), qf, torch.tensor(0.2))
+    loss = sac.policy_loss(batch, actor, qf, torch.tensor(0.2))
     torch.set_rng_state(rng)  # the same reparameterised samples
     with torch.no_grad():
         pi, log_pi, _ = actor.get_action(batch.observations)
@@ -177,15 +183,19 @@ def test_actor_loss_is_alpha_log_pi_minus_the_min_over_critics():
 def test_critic_update_fits_both_critics_to_the_entropy_target_and_leaves_the_actor_alone():
     torch.manual_seed(0)
     actor, qf, qf_target = sac.Actor(OBS_DIM, SPACE), sac.QEnsemble(OBS_DIM, 2), sac.QEnsemble(OBS_DIM, 2)
-    batch = sac.Batch(torch.randn(32, OBS_DIM), torch.rand(32, 2), torch.randn(32, OBS_DIM), torch.randn(32), torch.zeros(32))
+    batch = Batch(torch.randn(32, OBS_DIM), torch.rand(32, 2), torch.randn(32, OBS_DIM), torch.randn(32), torch.zeros(32))
     optimizer, args, alpha = torch.optim.Adam(qf.parameters(), lr=1e-3), sac.Args(), torch.tensor(0.2)
     rng = torch.get_rng_state()
-    loss, q_values = sac.update_critic(batch, qf, torch.optim.SGD(qf.parameters(), lr=0.0), actor, qf_target, alpha, args)
+    loss, q_values = sac.critic_loss(batch, qf, actor, qf_target, alpha, args)
     torch.set_rng_state(rng)  # the same next actions
     target = sac.td_target(batch, actor, qf_target, alpha, args)
     assert loss.item() == pytest.approx(((q_values - target) ** 2).mean(1).sum().item(), rel=1e-5)  # both critics' MSE
     actor_before, target_before = [p.clone() for p in actor.parameters()], [p.clone() for p in qf_target.parameters()]
-    losses = [sac.update_critic(batch, qf, optimizer, actor, qf_target, alpha, args)[0].item() for _ in range(50)]
+    losses = []
+    for _ in range(50):  # main's critic step: the loss, then optimize
+        loss, _ = sac.critic_loss(batch, qf, actor, qf_target, alpha, args)
+        sac.optimize(loss, "qf_loss", optimizer)
+        losses.append(loss.item())
     assert losses[-1] < 0.5 * losses[0]
     for before, net in [(actor_before, actor), (target_before, qf_target)]:
         assert all(torch.equal(a, b) for a, b in zip(before, net.parameters()))
@@ -204,15 +214,16 @@ def test_acting_samples_from_the_policy():
 @pytest.mark.parametrize("num_seeds", [1, 3])
 def test_sampled_action_is_get_actions_bit_for_bit(num_seeds):
     """Acting skips the log-probability and deterministic action (sampled_action), yet acts and draws as get_action:
-    the same actions bit for bit and the generators left in the same states, so training is unchanged by it."""
-    generators = [torch.Generator().manual_seed(seed) for seed in range(num_seeds)]
-    actor = sac.Actor(OBS_DIM, SPACE, generators)
-    twins = [torch.Generator() for _ in generators]
-    for twin, generator in zip(twins, generators):
-        twin.set_state(generator.get_state())
-    obs = 3 * np.random.default_rng(0).standard_normal((num_seeds, OBS_DIM), dtype=np.float32)
-    acted = torch.stack([sac.noisy_action(obs, actor, generators) for _ in range(20)])
+    the same actions bit for bit and the generator left in the same state, so training is unchanged by it; with
+    several seeds too, where main acts through per_seed."""
+    (actor,) = stack_seeds(lambda: [sac.Actor(OBS_DIM, SPACE)], list(range(num_seeds)), torch.device("cpu"))
+    obs = torch.as_tensor(3 * np.random.default_rng(0).standard_normal((num_seeds, OBS_DIM), dtype=np.float32))
+    torch.manual_seed(0)
+    acted = torch.stack([per_seed(sac.noisy_action)(obs, actor) for _ in range(20)])
+    state = torch.get_rng_state()
+    torch.manual_seed(0)
     with torch.no_grad():
-        sampled = torch.stack([actor.get_action(torch.as_tensor(obs), twins)[0] for _ in range(20)])
+        sampled = torch.stack([per_seed(actor.get_action)(obs)[0] for _ in range(20)])
+    assert acted.shape == (20, num_seeds, 2)
     assert torch.equal(acted, sampled) and acted.std(0).min() > 0  # every draw new, every one get_action's
-    assert all(torch.equal(g.get_state(), t.get_state()) for g, t in zip(generators, twins))
+    assert torch.equal(torch.get_rng_state(), state)

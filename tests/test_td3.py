@@ -1,4 +1,5 @@
-"""TD3's parts: replay buffer, critic ensemble, target value, updates, target networks."""
+"""TD3's parts: replay buffer, critic ensemble, target value, losses and their optimizer steps, target networks.
+The algorithm functions are written for one seed (main runs them through rl_utils.per_seed); so are these tests."""
 
 import gymnasium as gym
 import numpy as np
@@ -8,22 +9,32 @@ import torch.nn.functional as F
 
 import td3_continuous_action as td3
 from conftest import assert_ensemble_is_independent_mlps
+from rl_utils import Batch, ReplayBuffer
+from rl_utils.numerics import NonFiniteError
 
 OBS_DIM, ACTION_DIM = 4, 2
 SPACE = gym.spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 4.0], np.float32))
 
 
-def filled_buffer(capacity=10, rows=7):
-    rb = td3.ReplayBuffer(capacity, OBS_DIM, ACTION_DIM, torch.device("cpu"))
+def filled_buffer(capacity=10, rows=7, num_seeds=1):
+    rb = ReplayBuffer(capacity, OBS_DIM, ACTION_DIM, num_seeds, torch.device("cpu"))
+    seed = np.arange(num_seeds)[:, None]  # seed k's rows are offset by 100 k
     for i in range(rows):  # row i is recognisable from every field
-        rb.add(np.full(OBS_DIM, i), np.full(ACTION_DIM, -i), np.full(OBS_DIM, i + 0.5), 10.0 * i, i % 2)
+        j = i + 100 * seed
+        rb.add(
+            np.broadcast_to(j, (num_seeds, OBS_DIM)),
+            np.broadcast_to(-j, (num_seeds, ACTION_DIM)),
+            np.broadcast_to(j + 0.5, (num_seeds, OBS_DIM)),
+            10.0 * j[:, 0],
+            j[:, 0] % 2,
+        )
     return rb
 
 
 def test_replay_buffer_samples_whole_transitions():
     torch.manual_seed(0)
     rb = filled_buffer()
-    batch = td3.Batch(*(field[0] for field in rb.sample(500)))  # the one seed's batch
+    batch = Batch(*(field[0] for field in rb.sample(500)))  # the one seed's batch
     i = batch.observations[:, 0]
     assert set(i.tolist()) == set(range(7))
     torch.testing.assert_close(batch.observations, i[:, None].expand(-1, OBS_DIM))
@@ -39,6 +50,17 @@ def test_replay_buffer_overwrites_the_oldest_rows_when_full():
     rb = filled_buffer(capacity=5, rows=7)
     assert rb.size == 5 and rb.pos == 2
     assert set(rb.sample(500).observations[0, :, 0].tolist()) == {2, 3, 4, 5, 6}
+
+
+def test_replay_buffer_draws_each_seeds_batch_from_its_own_transitions():
+    torch.manual_seed(0)
+    batch = filled_buffer(rows=7, num_seeds=3).sample(4, 500)  # 4 batches of 500 per seed
+    assert batch.observations.shape == (3, 4, 500, OBS_DIM) and batch.rewards.shape == (3, 4, 500)
+    for k in range(3):
+        i = batch.observations[k, ..., 0]
+        assert set(i.flatten().tolist()) == {100 * k + row for row in range(7)}  # its own rows, all of them
+        torch.testing.assert_close(batch.rewards[k], 10.0 * i)  # whole transitions
+    assert not torch.equal(batch.observations[0] % 100, batch.observations[1] % 100)  # indices drawn per seed
 
 
 def test_q_ensemble_members_are_independent_mlps():
@@ -83,7 +105,7 @@ def zero_actor():
 
 
 def batch_of(n, rewards, terminations):
-    return td3.Batch(torch.zeros(n, OBS_DIM), torch.zeros(n, ACTION_DIM), torch.zeros(n, OBS_DIM), rewards, terminations)
+    return Batch(torch.zeros(n, OBS_DIM), torch.zeros(n, ACTION_DIM), torch.zeros(n, OBS_DIM), rewards, terminations)
 
 
 def test_td_target_takes_min_over_members_and_bootstraps_unless_terminated():
@@ -120,7 +142,7 @@ def make_agent():
     target_actor, qf_target = td3.Actor(OBS_DIM, SPACE), td3.QEnsemble(OBS_DIM, ACTION_DIM)
     q_optimizer = torch.optim.Adam(qf.parameters(), lr=1e-3)
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=1e-3)
-    batch = td3.Batch(
+    batch = Batch(
         torch.randn(32, OBS_DIM), torch.rand(32, ACTION_DIM), torch.randn(32, OBS_DIM), torch.randn(32), torch.zeros(32)
     )
     return actor, qf, target_actor, qf_target, q_optimizer, actor_optimizer, batch
@@ -130,12 +152,27 @@ def snapshot(net):
     return [p.detach().clone() for p in net.parameters()]
 
 
+def test_critic_loss_is_the_sum_of_each_critics_mse_against_the_td_target():
+    _, qf, target_actor, qf_target, _, _, batch = make_agent()
+    args = td3.Args()  # target noise on: the loss and the target below draw the same noise
+    torch.manual_seed(1)
+    loss, q = td3.critic_loss(batch, qf, target_actor, qf_target, args)
+    torch.manual_seed(1)
+    y = td3.td_target(batch, target_actor, qf_target, args)
+    with torch.no_grad():
+        torch.testing.assert_close(q, qf(batch.observations, batch.actions))
+    assert q.shape == (2, 32) and not q.requires_grad and loss.shape == ()
+    assert loss.item() == pytest.approx(((q - y) ** 2).mean(1).sum().item(), rel=1e-6)
+
+
 def test_critic_update_fits_the_target_and_leaves_actors_alone():
     actor, qf, target_actor, qf_target, q_optimizer, _, batch = make_agent()
     actor_before, target_before = snapshot(actor), snapshot(target_actor)
-    losses = [
-        td3.update_critic(batch, qf, q_optimizer, target_actor, qf_target, td3.Args(policy_noise=0.0))[0] for _ in range(50)
-    ]
+    losses = []
+    for _ in range(50):  # main's critic step: the loss, then optimize
+        loss, _ = td3.critic_loss(batch, qf, target_actor, qf_target, td3.Args(policy_noise=0.0))
+        td3.optimize(loss, "qf_loss", q_optimizer)
+        losses.append(loss.item())
     assert losses[-1] < 0.5 * losses[0]
     for before, net in [(actor_before, actor), (target_before, target_actor)]:
         for a, b in zip(before, net.parameters()):
@@ -146,15 +183,35 @@ def test_actor_update_uses_q1_and_never_touches_the_critic():
     actor, qf, _, _, _, actor_optimizer, batch = make_agent()
     qf_before, actor_before = snapshot(qf), snapshot(actor)
     q1_before = qf(batch.observations, actor(batch.observations))[0].mean().item()
-    loss = td3.update_actor(batch, actor, actor_optimizer, qf)
+    loss = td3.policy_loss(batch, actor, qf)
     assert loss.item() == pytest.approx(-q1_before, rel=1e-5)
+    td3.optimize(loss, "actor_loss", actor_optimizer)
     assert all(p.grad is None for p in qf.parameters())
     for a, b in zip(qf_before, qf.parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert any(not torch.equal(a, b) for a, b in zip(actor_before, actor.parameters()))
     for _ in range(30):
-        td3.update_actor(batch, actor, actor_optimizer, qf)
+        td3.optimize(td3.policy_loss(batch, actor, qf), "actor_loss", actor_optimizer)
     assert qf(batch.observations, actor(batch.observations))[0].mean().item() > q1_before  # ascends Q1
+
+
+def test_optimize_steps_on_this_losss_gradient_alone_and_refuses_a_non_finite_loss():
+    """optimize: one step on the gradient of this loss only (the previous step's left in .grad is cleared first);
+    a NaN or infinite loss stops it before any weight changes."""
+    actor, qf, _, _, _, _, batch = make_agent()
+    optimizer = torch.optim.SGD(actor.parameters(), lr=0.1)
+    td3.optimize(td3.policy_loss(batch, actor, qf), "actor_loss", optimizer)  # leaves its gradient in .grad
+    before = snapshot(actor)
+    loss = td3.policy_loss(batch, actor, qf)
+    grads = torch.autograd.grad(loss, list(actor.parameters()), retain_graph=True)
+    td3.optimize(loss, "actor_loss", optimizer)
+    for a, g, b in zip(before, grads, actor.parameters()):
+        torch.testing.assert_close(b, a - 0.1 * g)
+    after = snapshot(actor)
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(NonFiniteError, match="actor_loss"):
+            td3.optimize(td3.policy_loss(batch, actor, qf) * bad, "actor_loss", optimizer)
+        assert all(torch.equal(a, b) for a, b in zip(after, actor.parameters()))
 
 
 def test_soft_update_is_polyak_averaging():

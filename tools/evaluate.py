@@ -3,10 +3,12 @@
     python tools/evaluate.py runs/Hopper-v4__oparl_continuous_action__1__1700000000/oparl_continuous_action.cleanrl_model
     python tools/evaluate.py MODEL --algo sac --env-id dm_control/cartpole-swingup-v0 --episodes 20 --capture-video
 
-The policy acts exactly as in the training script's own evaluation (its `evaluate` function: the
-noiseless actor for TD3 and OPARL's pessimistic actor, the squashed mean action for SAC and REDQ, the
-mean action on observations normalised with the saved training statistics for PPO, RND and EBD),
-through the script's own environment layer (`make_env`). The algorithm is read from the model's file
+The policy acts exactly as in the training script's own evaluations (the `policy` its `main` hands to
+`rl_utils.evaluate`: the noiseless actor for TD3 and OPARL's pessimistic actor, the squashed mean action
+(`deterministic_action`) for SAC and REDQ, the clipped mean action on observations normalised with the saved
+training statistics for PPO, RND and EBD), on rl_utils' environment layer (`make_env`, `evaluate`). A saved
+model is a plain single-seed state_dict per network; a seed of a --num-seeds process saves its own in the same
+form, in its own run folder. The algorithm is read from the model's file
 name (`{exp_name}.cleanrl_model`, the script's name unless --exp-name changed it) and the task from
 its run folder's name (`{env_id}__...`, `dm_control-` standing for `dm_control/`); --algo and --env-id
 say them when the names do not. --capture-video records the first episode to --video-folder.
@@ -22,7 +24,9 @@ import numpy as np
 import torch
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)  # the training scripts
+sys.path.insert(0, REPO)  # the training scripts and rl_utils
+from rl_utils import evaluate, make_env, per_seed  # noqa: E402
+
 # every {algo}_continuous_action.py beside this folder, a new one included
 ALGOS = sorted(os.path.basename(p).removesuffix("_continuous_action.py") for p in glob.glob(f"{REPO}/*_continuous_action.py"))
 
@@ -48,7 +52,7 @@ def infer_env_id(model_path: str) -> str | None:
 
 
 def load_policy(script, algo: str, model_path: str, env):
-    """A function that evaluates the saved policy with the training script's own `evaluate`."""
+    """The saved policy as the training script's `main` evaluates it: observations [1, obs_dim] -> actions."""
     try:
         saved = torch.load(model_path, map_location="cpu", weights_only=True)
     except Exception as e:
@@ -56,18 +60,25 @@ def load_policy(script, algo: str, model_path: str, env):
     if not isinstance(saved, dict) or "actor" not in saved:
         fail(f"{model_path!r} holds no 'actor': not a model written by --save-model")
     obs_dim = int(np.prod(env.observation_space.shape))
+    low, high = env.action_space.low, env.action_space.high
     try:
         if hasattr(script, "Normalizer"):  # PPO, RND, EBD: an agent and its observation statistics
             agent = script.Agent(obs_dim, int(np.prod(env.action_space.shape)))
             agent.load_state_dict(saved["actor"])
             normalizer = script.Normalizer(obs_dim, gamma=0.99)  # gamma only matters for rewards, not used here
             normalizer.load_state_dict(saved["normalizer"])
-            return lambda eval_env, episodes, seed: script.evaluate(agent, normalizer, eval_env, episodes, seed)
+            # the mean action on the training statistics (not updated), clipped
+            return lambda obs: (
+                agent.actor_mean(torch.as_tensor(normalizer.observation(obs, update=False))).numpy().clip(low, high)
+            )
         actor = script.Actor(obs_dim, env.action_space)
         actor.load_state_dict(saved["actor"])
     except (RuntimeError, KeyError) as e:  # another algorithm's or another task's model
         fail(f"{model_path!r} does not fit {algo} on this task ({type(e).__name__}: {str(e).splitlines()[0]})")
-    return lambda eval_env, episodes, seed: script.evaluate(actor, [eval_env], episodes, [seed])[0]  # the one seed's
+    # SAC's and REDQ's squashed mean action, TD3's and OPARL's (pessimistic) actor; per_seed runs it on one
+    # observation, as the scripts' one-seed evaluations do
+    act = getattr(actor, "deterministic_action", actor)
+    return lambda obs: per_seed(act)(torch.as_tensor(obs)).numpy()
 
 
 def main(argv=None) -> np.ndarray:
@@ -99,10 +110,10 @@ def main(argv=None) -> np.ndarray:
     torch.set_num_threads(1)
     script = importlib.import_module(f"{algo}_continuous_action")
     video_folder = args.video_folder if args.capture_video else None
-    env = script.make_env(env_id, args.seed, video_folder, video_every=args.episodes)
+    env = make_env(env_id, args.seed, video_folder, video_every=args.episodes)
     policy = load_policy(script, algo, args.model, env)
     with torch.no_grad():
-        returns = policy(env, args.episodes, args.seed)
+        returns = evaluate(policy, [env], [args.seed], args.episodes)[0]  # the one env's
     env.close()
     print(f"{algo} on {env_id}: mean return {returns.mean():.1f} +- {returns.std():.1f} over {args.episodes} episodes")
     if video_folder:
