@@ -1,7 +1,8 @@
-"""The GPU session scripts (tools/gpu_seed_scaling.sh, tools/gpu_speed.sh, their tools/gpu_common.sh) spend a lease
-that cannot be bought back, so their bookkeeping is checked here, on a CPU, with python, nvidia-smi and the MPS
-control program replaced by fakes that only record how they were called: which steps run for a FIRST_STEP and a
-BUDGET, where a call stops, what the log tells the next call, and that MPS ends off."""
+"""The GPU session scripts (tools/speed/gpu_seed_scaling.sh, tools/speed/gpu_speed.sh, their tools/speed/gpu_common.sh)
+spend a lease that cannot be bought back, so their bookkeeping is checked here, on a CPU, with python, nvidia-smi and
+the MPS control program replaced by fakes that only record how they were called: which steps run for a FIRST_STEP and
+a BUDGET, where a call stops, what the log tells the next call, that every tool they call is where they call it, and
+that MPS ends off."""
 
 import os
 import re
@@ -30,11 +31,16 @@ def run_script(tmp_path, script, first_step=None, budget=10_000):
     env = dict(os.environ, PATH=f"{fakes}:{os.environ['PATH']}", OUT=str(tmp_path / "out"), BUDGET=str(budget))
     env.update(CALLS=str(tmp_path / "calls.txt"), MPS=str(tmp_path / "mps.txt"), CLEANRL=str(tmp_path / "no_cleanrl"))
     env.update(MPS_STATE=str(tmp_path / "mps_state"), MPS_SETTLE="0")  # a fresh machine's record of MPS: none (off)
-    args = ["bash", os.path.join(REPO, "tools", script)] + ([str(first_step)] if first_step else [])
+    args = ["bash", os.path.join(REPO, "tools", "speed", script)] + ([str(first_step)] if first_step else [])
     result = subprocess.run(args, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     read = lambda name: (tmp_path / name).read_text().splitlines() if (tmp_path / name).exists() else []  # noqa: E731
-    return read("out/log.txt"), read("calls.txt"), read("mps.txt")
+    calls = read("calls.txt")
+    # the fake python runs nothing: each script it was given must be there, where the repository's root (the working
+    # folder of a session) has it
+    scripts = {call.split()[0] for call in calls if call.split()[0].endswith(".py")}
+    assert scripts and all(os.path.isfile(os.path.join(REPO, script)) for script in scripts), scripts
+    return read("out/log.txt"), calls, read("mps.txt")
 
 
 def numbered_steps(log):
@@ -47,7 +53,7 @@ def test_scaling_runs_every_step_in_order_and_the_baseline_once(tmp_path):
     assert steps == list(range(1, len(steps) + 1)) and len(steps) >= 20, steps
     assert sum(line.startswith("== every call") for line in log) == 1
     assert log[-1].startswith("done at")
-    timed = [c for c in calls if c.startswith("tools/throughput.py")]
+    timed = [c for c in calls if c.startswith("tools/speed/throughput.py")]
     assert len(timed) == len(steps) - 2 + 1  # steps 1-2 are the environment cost and the tests, plus the baseline
     assert all("--cuda --window" in c and "--csv" in c for c in timed)
     # each row is labelled with how it ran; several processes ran both ways, one process always without MPS
@@ -63,7 +69,7 @@ def test_scaling_resumes_at_first_step_with_the_baseline(tmp_path):
     steps = numbered_steps(log)
     assert steps[0] == 16 and steps == list(range(16, 16 + len(steps)))
     assert sum(line.startswith("== every call") for line in log) == 1
-    first = next(c for c in calls if c.startswith("tools/throughput.py"))
+    first = next(c for c in calls if c.startswith("tools/speed/throughput.py"))
     assert first.split()[1] == "oparl" and "--num-seeds" not in first  # the one-seed baseline runs before step 16
 
 
@@ -74,7 +80,7 @@ def test_scaling_stops_before_the_first_step_that_does_not_fit(tmp_path):
     assert numbered_steps(log) == []
     assert sum(line.startswith("== every call") for line in log) == 1
     assert any("run again with FIRST_STEP 3" in line for line in log), log
-    assert len([c for c in calls if c.startswith("tools/throughput.py")]) == 1
+    assert len([c for c in calls if c.startswith("tools/speed/throughput.py")]) == 1
     assert mps == []  # the baseline runs without MPS; nothing was started, so nothing to stop
 
 
@@ -82,11 +88,11 @@ def test_speed_runs_its_steps_without_cleanrl_and_without_mps(tmp_path):
     log, calls, mps = run_script(tmp_path, "gpu_speed.sh", first_step=2)
     assert numbered_steps(log) == [2, 3, 4, 5, 6, 7, 8, 9]
     assert any("no CleanRL folder" in line for line in log)
-    phases = [c for c in calls if c.startswith("tools/phase_times.py")]
+    phases = [c for c in calls if c.startswith("tools/speed/phase_times.py")]
     pairs = [script for script in ("td3", "oparl", "sac", "redq") for _ in range(4)]
     assert [c.split()[1] for c in phases] == pairs + ["td3", "oparl", "redq"]
     assert [("--no-sync" in c) for c in phases] == [True] * 16 + [False] * 3
     assert [("--blocking-copy" in c) for c in phases] == [False, True, True, False] * 4 + [False] * 3  # A B B A
-    speed = [c for c in calls if c.startswith("tools/throughput.py")]
+    speed = [c for c in calls if c.startswith("tools/speed/throughput.py")]
     assert len(speed) == 1 and "dm_control/cartpole-swingup-v0" in speed[0] and "_continuous_action.py" not in speed[0]
     assert mps == []

@@ -176,51 +176,51 @@ def test_changing_one_seeds_data_and_weights_leaves_the_others_bit_identical(scr
     reference = {k: [t.clone() for t in seed_params(result, k).values()] for k in range(3)}
 
     load_state(result, before)  # the same draws again
-    with torch.no_grad():  # seed 2 (index 1) gets other weights and other data
+    with torch.no_grad():  # seed 1 (index 0) gets other weights and other data
         for net in modules(result).values():
             for p in net.parameters():
-                p[1].mul_(1.5)
+                p[0].mul_(1.5)
     changed = type(batch)(*(field.clone() for field in batch))
-    changed.rewards[1] += 10.0
-    changed.observations[1] *= -1
+    changed.rewards[0] += 10.0
+    changed.observations[0] *= -1
     one_update(result, changed)
-    for k in (0, 2):
+    for k in (1, 2):
         for name, a, b in zip(seed_params(result, k), reference[k], seed_params(result, k).values()):
-            assert torch.equal(a, b), f"seed index {k}'s {name} changed with seed index 1's data"
-    assert any(not torch.equal(a, b) for a, b in zip(reference[1], seed_params(result, 1).values()))
+            assert torch.equal(a, b), f"seed index {k}'s {name} changed with seed index 0's data"
+    assert any(not torch.equal(a, b) for a, b in zip(reference[0], seed_params(result, 0).values()))
     load_state(result, before)  # the shared run as it was, for the other tests
 
 
 @pytest.mark.parametrize("script", [pytest.param(s, marks=pytest.mark.xdist_group(f"many-{s}")) for s in MANY_SEEDS])
 def test_a_seeds_update_is_the_one_seed_update_on_the_same_batch(script, short_run, monkeypatch):
-    """With the noise taken out (every torch.randn_like a zero), seed 2 of 3 updates exactly as a one-seed run in
-    seed 2's state does on seed 2's batch: the weights, and the gradients (a mean over seeds would give a third)."""
+    """With the noise taken out (every torch.randn_like a zero), seed 3 of 3 updates exactly as a one-seed run in
+    seed 3's state does on seed 3's batch: the weights, and the gradients (a mean over seeds would give a third)."""
     many, one = short_run(script, 3), short_run(script, 1)
     before_many, before_one = stacked_state(many), stacked_state(one)
     nets, opts = modules(many), optimizers(many)
     parts = {"buffer": many["rb"], **tensor_parts(many)}
     state = ckpt.snapshot(f"{script}_continuous_action.py", load(script).Args(), [], 0, nets, opts, parts)
-    share = ckpt.split_seeds(state, nets, parts, [[], [], []], ["a", "b", "c"])[1]  # seed index 1, as a checkpoint
+    share = ckpt.split_seeds(state, nets, parts, [[], [], []], ["a", "b", "c"])[2]  # seed index 2, as a checkpoint
     one_parts = {"buffer": one["rb"], **tensor_parts(one)}
     ckpt.restore(share, [], {k: one[k] for k in nets}, {k: one[k] for k in opts}, one_parts)
     if "alpha" in many:  # SAC's entropy coefficient follows log_alpha
         with torch.no_grad():
-            one["alpha"].copy_(many["alpha"][1:2])
+            one["alpha"].copy_(many["alpha"][2:3])
 
     monkeypatch.setattr(torch, "randn_like", torch.zeros_like)
     batch = many["rb"].sample(64)
     one_update(many, batch)
-    one_update(one, type(batch)(*(field[1:2] for field in batch)))
+    one_update(one, type(batch)(*(field[2:3] for field in batch)))
     # to a third of an Adam step (lr 3e-4): where a gradient is near zero, rounding can flip the sign of a step
-    for (name, a), b in zip(seed_params(many, 1).items(), params(one).values()):
-        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-4, msg=f"{name}: seed 2 of 3 against the same seed alone")
+    for (name, a), b in zip(seed_params(many, 2).items(), params(one).values()):
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-4, msg=f"{name}: seed 3 of 3 against the same seed alone")
     # The gradients too: a mean over seeds instead of the sum would make them a third (a difference the weights hide,
     # as Adam divides by the gradients' scale). The critics' agree to rounding; the actors' are taken through critics
     # already updated, whose last bits differ between the kernels, so they agree to less (a few percent).
     checked = 0
     for (name, p_many), p_one in zip(params(many).items(), params(one).values()):
         if p_one.grad is not None:
-            error = (p_many.grad[1] - p_one.grad).abs().max() / p_one.grad.abs().max()
+            error = (p_many.grad[2] - p_one.grad).abs().max() / p_one.grad.abs().max()
             assert error < (1e-4 if name.startswith("qf.") else 5e-2), f"{name}'s gradient differs by {error:.1e}"
             checked += name.startswith("qf.")
     assert checked

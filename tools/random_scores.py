@@ -3,7 +3,7 @@ normalises tasks without a common scale (MuJoCo) from the random policy (0) to t
 
     python tools/random_scores.py Ant-v4 Hopper-v4 Humanoid-v4 Walker2d-v4 --episodes 100 --out results/mujoco/random_scores.csv
 
-Episodes run through the scripts' own environment layer (td3_continuous_action.make_env), with actions
+Episodes run through the scripts' own environment layer (rl_utils.envs.make_env), with actions
 drawn uniformly from the action space, seeded, so the file is reproducible.
 """
 
@@ -15,7 +15,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from td3_continuous_action import make_env  # noqa: E402
+from rl_utils import make_env  # noqa: E402
 
 
 def random_returns(env_id: str, episodes: int, seed: int) -> np.ndarray:

@@ -1,8 +1,8 @@
-"""What one environment step costs on this CPU, through a script's own environment layer (make_env and its
-wrappers), stepped as a many-seed process steps its environments: one after another, with random actions drawn
-beforehand.
+"""What one environment step costs on this CPU, through a script's own environment layer (the make_env, with its
+wrappers, that builds the script's environments: rl_utils.envs', which every script shares), stepped as a many-seed
+process steps its environments: one after another, with random actions drawn beforehand.
 
-    python tools/env_cost.py dm_control/cartpole-swingup-v0 dm_control/walker-walk-v0 --envs 16 --steps 1000
+    python tools/speed/env_cost.py dm_control/cartpole-swingup-v0 dm_control/walker-walk-v0 --envs 16 --steps 1000
 
 A process training N seeds spends about N times this per training step on the CPU before any network runs,
 which bounds its steps/s however fast the GPU is (docs/speed.md, "On one GPU").
@@ -11,16 +11,26 @@ which bounds its steps/s however fast the GPU is (docs/speed.md, "On one GPU").
 import argparse
 import importlib.util
 import os
+import sys
 import time
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def load(script: str):
+    sys.path.insert(0, REPO)  # the scripts import rl_utils
     spec = importlib.util.spec_from_file_location(script, os.path.join(REPO, f"{script}_continuous_action.py"))
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def make_env_of(script: str):
+    """The make_env that builds the script's environments: the one its SeedEnvs calls (or its own, if it has one)."""
+    module = load(script)
+    if hasattr(module, "make_env"):
+        return module.make_env
+    return vars(sys.modules[module.SeedEnvs.__module__])["make_env"]
 
 
 def step_cost(make_env, env_id: str, num_envs: int, steps: int) -> float:
@@ -54,7 +64,7 @@ def main(argv=None):
         parser.error(f"--envs and --steps must be > 0, got {args.envs} and {args.steps}")
     if not os.path.exists(os.path.join(REPO, f"{args.script}_continuous_action.py")):
         parser.error(f"--script {args.script}: no {args.script}_continuous_action.py")
-    make_env = load(args.script).make_env
+    make_env = make_env_of(args.script)
     print(f"| task | ms per environment step ({args.envs} environments x {args.steps} steps) |")
     print("|---|---|")
     for env_id in args.env_ids:

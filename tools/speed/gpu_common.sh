@@ -1,5 +1,5 @@
-# Sourced by tools/gpu_seed_scaling.sh and tools/gpu_speed.sh (not run alone): their budget, their steps, MPS and
-# the machine's description. Reads OUT (default gpu_out), BUDGET (seconds, default 540), the first argument
+# Sourced by tools/speed/gpu_seed_scaling.sh and tools/speed/gpu_speed.sh (not run alone): their budget, their steps,
+# MPS and the machine's description. Reads OUT (default gpu_out), BUDGET (seconds, default 540), the first argument
 # (FIRST_STEP, default 1), MPS_STATE and MPS_SETTLE (see mps; tests/test_gpu_scripts.py sets them); writes
 # $OUT/machine.txt and appends to $OUT/log.txt.
 OUT=${OUT:-gpu_out}
@@ -50,7 +50,7 @@ mps() { # mps on|off: starts or stops the MPS daemon when that changes its state
 }
 export -f mps
 trap 'mps off' EXIT
-# the GPU's name for tools/throughput.py's CSV, asked once here instead of in every timed step
+# the GPU's name for tools/speed/throughput.py's CSV, asked once here instead of in every timed step
 GPU_NAME=$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -n 1)
 export GPU_NAME
 {

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Many seeds on one GPU: agent-steps/s of oparl, td3 and sac --cudagraphs with N seeds in one process, and of
-# K processes x N seeds with and without MPS, each timed by tools/throughput.py --window (the charts/SPS of
+# K processes x N seeds with and without MPS, each timed by tools/speed/throughput.py --window (the charts/SPS of
 # 1000-step windows after warm-up: start-up, the random phase, graph recording and evaluations excluded).
 # Steps run in order of priority and each appends to $OUT/scaling.csv (its label column says whether MPS ran;
 # each timing step sets MPS as it needs it), so a lease that ends early still leaves the steps before it. Each
@@ -8,7 +8,7 @@
 # session's 15 minutes of device time): the log names the step a call stopped before; run it again from there
 # (FIRST_STEP), on a warm machine or a fresh one. On the device machine $OUT is the folder that comes back
 # (default here: gpu_out):
-#     BUDGET=540 bash tools/gpu_seed_scaling.sh [FIRST_STEP]
+#     BUDGET=540 bash tools/speed/gpu_seed_scaling.sh [FIRST_STEP]
 # BUDGET: seconds. Needs CUDA, MPS (nvidia-cuda-mps-control) and the NumPy that requirements.txt pins: carry its
 # wheel (docs/sweeps.md, "One GPU"); under NumPy 2.5 dm-control writes a DeprecationWarning at every environment
 # step (a few us each and megabytes of log).
@@ -18,15 +18,15 @@ CSV=$OUT/scaling.csv
 time_it() { # time_it on|off ENV_ID ENTRY [STEPS]: MPS on or off, then one run of the entry (500 random steps, then
     # STEPS), its windows appended to the CSV
     mps "$1"
-    python tools/throughput.py "$3" --env-id "$2" --cuda --window --learning-starts 500 --steps "${4:-2500}" --repeats 1 \
-        --csv "$CSV" --label "mps=$1"
+    python tools/speed/throughput.py "$3" --env-id "$2" --cuda --window --learning-starts 500 --steps "${4:-2500}" \
+        --repeats 1 --csv "$CSV" --label "mps=$1"
 }
 export -f time_it
 export CSV
 E=${E:-dm_control/cartpole-swingup-v0}
 G=${G---cudagraphs}
 
-step 15 "python tools/env_cost.py $E dm_control/walker-walk-v0 > $OUT/env_cost.md"
+step 15 "python tools/speed/env_cost.py $E dm_control/walker-walk-v0 > $OUT/env_cost.md"
 step 60 "python -m pytest tests/test_cudagraphs.py -q -x -p no:cacheprovider -k 'syncs and 3]'"
 again 25 "time_it off $E 'oparl $G'"   # the one-seed baseline, in every call
 step 60 "time_it on $E '16x:oparl $G --num-seeds 16' 1500"

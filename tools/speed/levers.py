@@ -5,7 +5,7 @@ said otherwise) against the way the scripts do it, on the same inputs, alternati
 taking the median over blocks. Shapes: Hopper-v4 (11-dim observations, 3-dim actions), batch 256,
 256-unit layers; one torch thread unless OMP_NUM_THREADS says otherwise.
 
-    python tools/levers.py [--repeats 7] [--calls 50]
+    python tools/speed/levers.py [--repeats 7] [--calls 50]
 """
 
 import argparse
@@ -21,9 +21,10 @@ import torch  # noqa: E402
 import torch.nn as nn  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 import oparl_continuous_action as oparl  # noqa: E402
 import td3_continuous_action as td3  # noqa: E402
+from rl_utils import ReplayBuffer  # noqa: E402
 
 OBS, ACT, BATCH = 11, 3, 256
 
@@ -160,7 +161,7 @@ def main(argv=None):
         )
 
     capacity = 100_000
-    rb = td3.ReplayBuffer(capacity, OBS, ACT, torch.device("cpu"))
+    rb = ReplayBuffer(capacity, OBS, ACT, 1, torch.device("cpu"))  # one seed's
     numpy_fields = [np.random.randn(capacity, d).astype(np.float32) for d in (OBS, ACT, OBS, 1, 1)]
     rb.storage.normal_()
     rb.size = capacity

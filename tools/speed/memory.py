@@ -1,10 +1,11 @@
 """Memory and checkpoint costs, the figures quoted in docs/reliability.md.
 
-python tools/memory.py rss td3 --env-id Hopper-v4 --total-timesteps 50000 --checkpoint-frequency 10000
+python tools/speed/memory.py rss td3 --env-id Hopper-v4 --total-timesteps 50000 --checkpoint-frequency 10000
     runs the script (one torch thread) and samples its resident memory every 2 s
-python tools/memory.py checkpoint [--script oparl] [--rows 100000]
+python tools/speed/memory.py checkpoint [--script oparl] [--rows 100000]
     size, write and load time of a checkpoint whose replay buffer is full, on Hopper-v4 and
-    dm_control/walker-walk-v0 shapes, written by the script's own write_checkpoint
+    dm_control/walker-walk-v0 shapes: the script's networks, Adam states and an rl_utils.ReplayBuffer, written by
+    rl_utils.checkpoints.write_checkpoints as a run writes its checkpoint
 """
 
 import argparse
@@ -16,7 +17,7 @@ import sys
 import tempfile
 import time
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, REPO)
 
 
@@ -47,6 +48,9 @@ def checkpoint(script: str, rows: int):
     import numpy as np
     import torch
 
+    from rl_utils import ReplayBuffer
+    from rl_utils.checkpoints import CHECKPOINT, write_checkpoints
+
     torch.set_num_threads(1)
     module = importlib.import_module(f"{script}_continuous_action")
     for env_id, obs_dim, action_dim in [("Hopper-v4", 11, 3), ("dm_control/walker-walk-v0", 24, 6)]:
@@ -58,7 +62,7 @@ def checkpoint(script: str, rows: int):
             for p in nets[name].parameters():
                 p.grad = torch.zeros_like(p)
             optimizer.step()
-        rb = module.ReplayBuffer(rows, obs_dim, action_dim, torch.device("cpu"))
+        rb = ReplayBuffer(rows, obs_dim, action_dim, 1, torch.device("cpu"))  # one seed's
         rb.storage.normal_()
         rb.size = rows
         state = {
@@ -66,10 +70,10 @@ def checkpoint(script: str, rows: int):
             "optimizers": {k: v.state_dict() for k, v in optimizers.items()},
         }
         with tempfile.TemporaryDirectory() as workdir:
-            path, writes = os.path.join(workdir, "checkpoint.pt"), []
+            path, writes = os.path.join(workdir, CHECKPOINT), []
             for _ in range(5):
                 start = time.perf_counter()
-                module.write_checkpoint(path, {**state, "buffer": {"rows": rb.storage[: rb.size].clone(), "pos": 0}})
+                write_checkpoints([workdir], [{**state, "buffer": rb.state_dict()}])  # the buffer's rows copied, as a run's
                 writes.append(time.perf_counter() - start)
             start = time.perf_counter()
             torch.load(path, weights_only=True)
@@ -90,7 +94,7 @@ def main(argv=None):
     parser.add_argument("--rows", type=int, default=100_000)
     args = parser.parse_args(argv)
     if args.mode == "rss":
-        parser.error("rss needs a script and its flags: tools/memory.py rss td3 --env-id Hopper-v4 ...")
+        parser.error("rss needs a script and its flags: tools/speed/memory.py rss td3 --env-id Hopper-v4 ...")
     checkpoint(args.script, args.rows)
 
 

@@ -3,13 +3,14 @@
 Runs one of the off-policy scripts (td3, sac, oparl, redq) in this process with its phases wrapped in timers:
 acting, the environment step, storing the transition, replay sampling, the update (under --cudagraphs: the graph's
 replay and its input copies, TD3's two graphs (with and without the actor) averaged, REDQ's one graph of its 20
-critic updates, actor and alpha; eager: the TD target, the critic, actor and alpha updates, the target networks),
-logging, checkpoints and evaluation. On a GPU every timer synchronises the device when its phase starts and ends,
+critic updates, actor and alpha; eager: the TD target, the critic, actor and alpha updates (each its loss and its
+optimizer step), the target networks), logging, checkpoints and evaluation. Acting is the copy of the observations
+to the device and the actor's action. On a GPU every timer synchronises the device when its phase starts and ends,
 so the kernels a phase launched are charged to it: without that, a graph's replay returns at once and its GPU time
-shows up as waiting in the next step's acting (which is all py-spy, tools/profile_run.py, can see). The
+shows up as waiting in the next step's acting (which is all py-spy, tools/speed/profile_run.py, can see). The
 synchronisations remove what little overlap of host and GPU the loop has and cost a few microseconds each (the
 tool prints how many a step made and what an idle one costs), so the total is a synchronised step, slower than
-tools/throughput.py's rates: compare phases within a table, and rates with throughput.py. --no-sync times the
+tools/speed/throughput.py's rates: compare phases within a table, and rates with throughput.py. --no-sync times the
 same phases without synchronising (the host's view); with --no-sync --blocking-copy acting copies the
 observations to the GPU as it did before commit e4d8b37 (from pageable memory, which waits for the GPU to finish
 what is queued, a replaying update included), so that the two can be compared on one machine: compare their whole
@@ -20,13 +21,13 @@ and any GPU work left unsynchronised by then. The first
 --warmup-updates training steps (the first updates and, with --cudagraphs, the recordings) are not timed, nor is
 anything from the last evaluation on. For example:
 
-    python tools/phase_times.py td3 --env-id Hopper-v4 --cudagraphs --learning-starts 500 --total-timesteps 3000
-    python tools/phase_times.py oparl --env-id Hopper-v4 --learning-starts 500 --total-timesteps 1500 --csv phases.csv
+    python tools/speed/phase_times.py td3 --env-id Hopper-v4 --cudagraphs --learning-starts 500 --total-timesteps 3000
+    python tools/speed/phase_times.py oparl --env-id Hopper-v4 --learning-starts 500 --total-timesteps 1500 --csv phases.csv
 
 Everything after the script's short name (and this tool's own flags: --warmup-updates N, --csv PATH, --no-sync,
 --blocking-copy)
 is passed to the script; the run goes to a throw-away folder, with one torch thread unless OMP_NUM_THREADS says
-otherwise. `python tools/phase_times.py --summary phases.csv [more.csv ...]` reads what --csv wrote and prints each
+otherwise. `python tools/speed/phase_times.py --summary phases.csv [more.csv ...]` reads what --csv wrote and prints each
 run's whole step (the sum of its phases) by script and flags, their mean, and, where a script has runs with and
 without --blocking-copy under the same flags, the difference of the means.
 """
@@ -40,27 +41,34 @@ import sys
 import tempfile
 import time
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCRIPTS = ("td3", "sac", "oparl", "redq")  # the scripts with a replay buffer
-# (phase, where: a class name of the script or None for the module, the function's name); absent ones are skipped
+# (phase, where, the function's name); absent ones are skipped. Where: None for the script's module, whose main looks
+# these names up among its globals (replaced there, they are what main calls), or the rl_utils module ("module") or
+# class ("module:Class") that defines them (a method replaced in its class is every script's)
 PHASES = [
+    ("acting", None, "to_device"),  # the observations' copy to the device, before the actor's action
     ("acting", None, "noisy_action"),
     ("acting", None, "optimistic_action"),
-    ("storing the transition", "ReplayBuffer", "add"),
-    ("replay sampling", "ReplayBuffer", "sample"),
-    ("update: graph replay and input copies", "CudaGraph", "__call__"),
+    ("storing the transition", "rl_utils.buffers:ReplayBuffer", "add"),
+    ("replay sampling", "rl_utils.buffers:ReplayBuffer", "sample"),
+    ("update: graph replay and input copies", "rl_utils.numerics:CudaGraph", "__call__"),
     ("update: TD target", None, "td_target"),
-    ("update: critic", None, "update_critic"),
-    ("update: actor(s)", None, "update_actor"),
-    ("update: actor(s)", None, "update_actors"),
-    ("update: alpha", None, "update_alpha"),
+    ("update: critic", None, "critic_loss"),
+    ("update: actor(s)", None, "policy_loss"),
+    ("update: actor(s)", None, "policy_losses"),
+    ("update: alpha", None, "alpha_loss_fn"),
     ("update: target networks", None, "soft_update"),
-    ("logging", None, "log_scalars"),
-    ("checkpoints", None, "write_checkpoints"),
-    ("checkpoints", None, "snapshot"),  # the state a checkpoint holds, taken before write_checkpoints is called
-    ("checkpoints", None, "split_seeds"),
+    ("logging", "rl_utils.run:Run", "log"),
+    ("checkpoints", "rl_utils.checkpoints", "write_checkpoints"),
+    ("checkpoints", "rl_utils.checkpoints", "snapshot"),  # the state a checkpoint holds, taken before it is written
+    ("checkpoints", "rl_utils.checkpoints", "split_seeds"),
     ("evaluation", None, "evaluate"),
 ]
+# a loss's optimizer step, the script's optimize(loss, name, *optimizers), is charged to that loss's update, by name
+OPTIMIZED = {"qf_loss": "update: critic", "actor_loss": "update: actor(s)", "alpha_loss": "update: alpha"}
+# functions that are part of a phase whose other function counts its calls: acting's copy, the optimizer steps
+UNCOUNTED = {"to_device", "optimize"}
 ENV_PHASES = [("environment step", "step"), ("environment reset", "reset")]
 WHOLE = "evaluation"  # charged whole: the environment steps and actions inside it are not split out
 # the table's rows: the loop's phases in the loop's order, then the update's parts and the rest
@@ -83,7 +91,9 @@ class PhaseTimer:
         self.calls.clear()
         self.syncs = 0
 
-    def wrap(self, phase: str, fn):
+    def wrap(self, phase: str, fn, count: bool = True):
+        """fn, timed as part of `phase`; each call counts as one of the phase's calls if `count`."""
+
         @functools.wraps(fn)
         def timed(*args, **kwargs):
             if self.stack and self.stack[-1][0] == WHOLE:
@@ -98,7 +108,7 @@ class PhaseTimer:
                 elapsed = time.perf_counter() - start
                 _, inner = self.stack.pop()
                 self.seconds[phase] += elapsed - inner
-                self.calls[phase] += 1
+                self.calls[phase] += count
                 if self.stack:
                     self.stack[-1][1] += elapsed
 
@@ -125,19 +135,61 @@ def idle_sync_cost(repeats: int = 1000) -> float:
     return (time.perf_counter() - start) / repeats
 
 
+def owner_of(module, where):
+    """What PHASES' `where` names: the script's module (None), an rl_utils module or one of its classes."""
+    if where is None:
+        return module
+    path, _, cls = where.partition(":")
+    owner = importlib.import_module(path)
+    return getattr(owner, cls, None) if cls else owner
+
+
 def instrument(module, timer: PhaseTimer, warmup_updates: int) -> dict:
     """Wraps the script's phases in the timer; the clock starts (and every count resets) when the first training
     step after the first warmup_updates starts, at its acting, and every evaluation that starts after that marks
-    where the timed loop may end (the last one's mark is the run's). Returns the clock."""
+    where the timed loop may end (the last one's mark is the run's). Returns the clock.
+
+    The script calls its acting and loss functions through rl_utils.per_seed (for several seeds, torch.func.vmap over
+    them): `per_seed(fn)` of a timed fn is timed whole, so that a phase is charged what running it for every seed
+    costs, as when the functions took every seed's tensors themselves."""
     clock = {"start": None, "steps": 0, "samples": 0, "mark": None}
-    for phase, owner, name in PHASES:
-        target = module if owner is None else getattr(module, owner, None)
-        if target is not None and hasattr(target, name):
-            setattr(target, name, timer.wrap(phase, getattr(target, name)))
-    for name in (name for phase, _, name in PHASES if phase == "acting"):  # the first of a training step's phases
-        if hasattr(module, name):
-            setattr(module, name, start_clock_before(getattr(module, name), timer, clock, warmup_updates))
-    sample = module.ReplayBuffer.sample
+    timed = {}  # a function as the script now finds it -> (how it was wrapped, the function itself)
+    for phase, where, name in PHASES:
+        target = owner_of(module, where)
+        if target is None or not hasattr(target, name):
+            continue
+
+        def wrapped(fn, phase=phase, count=name not in UNCOUNTED, acting=phase == "acting" and where is None):
+            fn = timer.wrap(phase, fn, count=count)
+            # acting is the first of a training step's phases
+            return start_clock_before(fn, timer, clock, warmup_updates) if acting else fn
+
+        original = getattr(target, name)
+        setattr(target, name, wrapped(original))
+        timed[getattr(target, name)] = (wrapped, original)
+    per_seed = getattr(module, "per_seed", None)
+    if per_seed is not None:
+
+        @functools.wraps(per_seed)
+        def timed_per_seed(fn):
+            if fn in timed:
+                wrapped, original = timed[fn]
+                return wrapped(per_seed(original))
+            return per_seed(fn)
+
+        module.per_seed = timed_per_seed
+    optimize = getattr(module, "optimize", None)
+    if optimize is not None:
+        steps = {loss: timer.wrap(phase, optimize, count=False) for loss, phase in OPTIMIZED.items()}
+
+        @functools.wraps(optimize)
+        def timed_optimize(loss, name, *optimizers):  # the step of an unnamed loss is not timed
+            return steps.get(name, optimize)(loss, name, *optimizers)
+
+        module.optimize = timed_optimize
+    from rl_utils.buffers import ReplayBuffer
+
+    sample = ReplayBuffer.sample
 
     @functools.wraps(sample)
     def counted_sample(*args, **kwargs):  # one call per training step
@@ -146,7 +198,7 @@ def instrument(module, timer: PhaseTimer, warmup_updates: int) -> dict:
             clock["steps"] += 1
         return sample(*args, **kwargs)
 
-    module.ReplayBuffer.sample = counted_sample
+    ReplayBuffer.sample = counted_sample
     evaluate = module.evaluate
 
     @functools.wraps(evaluate)
@@ -156,28 +208,34 @@ def instrument(module, timer: PhaseTimer, warmup_updates: int) -> dict:
         return evaluate(*args, **kwargs)
 
     module.evaluate = marked_evaluate
-    make_env, wrapped = module.make_env, set()
+    import rl_utils.envs
+
+    make_env, env_classes = rl_utils.envs.make_env, set()
 
     @functools.wraps(make_env)
     def timed_make_env(*args, **kwargs):
         env = make_env(*args, **kwargs)
         cls = type(env)
-        if cls not in wrapped:  # the class of the outermost wrapper, once
-            wrapped.add(cls)
+        if cls not in env_classes:  # the class of the outermost wrapper, once
+            env_classes.add(cls)
             for phase, name in ENV_PHASES:
                 setattr(cls, name, timer.wrap(phase, getattr(cls, name)))
         return env
 
-    module.make_env = timed_make_env
+    rl_utils.envs.make_env = timed_make_env  # where SeedEnvs looks it up
+    if hasattr(module, "make_env"):
+        module.make_env = timed_make_env
     return clock
 
 
 def start_clock_before(act, timer: PhaseTimer, clock: dict, warmup_updates: int):
-    """act, which first resets the timer and starts the clock when warmup_updates training steps have passed."""
+    """act, which first resets the timer and starts the clock when warmup_updates training steps have passed (at the
+    first of acting's functions a step calls, outside every phase: the evaluations' copies to the device are not
+    acting)."""
 
     @functools.wraps(act)
     def acting(*args, **kwargs):
-        if clock["start"] is None and clock["samples"] >= warmup_updates:
+        if clock["start"] is None and clock["samples"] >= warmup_updates and not timer.stack:
             timer.reset()
             clock["start"] = time.perf_counter()
         return act(*args, **kwargs)
@@ -223,8 +281,8 @@ def parse(argv: list) -> tuple:
         sys.exit(__doc__)
     if argv[0] not in SCRIPTS:
         sys.exit(
-            f"error: usage: python tools/phase_times.py {{{','.join(SCRIPTS)}}} [--warmup-updates N] [--csv PATH] [--no-sync] "
-            "[--blocking-copy] [flags]"
+            f"error: usage: python tools/speed/phase_times.py {{{','.join(SCRIPTS)}}} [--warmup-updates N] [--csv PATH] "
+            "[--no-sync] [--blocking-copy] [flags]"
         )
     own, sync, blocking, script_argv, rest = {"--warmup-updates": "200", "--csv": None}, True, False, [], argv[1:]
     while rest:
@@ -258,7 +316,7 @@ def runs_of(paths: list) -> list:
         except (OSError, UnicodeDecodeError) as e:
             sys.exit(f"error: cannot read {path}: {getattr(e, 'strerror', None) or e}")
         if rows and not set(CSV_FIELDS) <= set(rows[0]):
-            sys.exit(f"error: {path} is not a CSV that tools/phase_times.py --csv wrote")
+            sys.exit(f"error: {path} is not a CSV that tools/speed/phase_times.py --csv wrote")
         run = None
         for line, row in enumerate(rows, start=2):
             key = tuple(row[field] for field in ("script", "flags", "device", "threads", "synchronised", "timed_steps"))
@@ -305,6 +363,8 @@ def main(argv=None):
     script, warmup, csv_path, sync, blocking, script_argv = parse(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     sys.path.insert(0, REPO)
+    from rl_utils import parse_args
+
     name = f"{script}_continuous_action"
     spec = importlib.util.spec_from_file_location(name, os.path.join(REPO, f"{name}.py"))
     module = importlib.util.module_from_spec(spec)
@@ -318,7 +378,7 @@ def main(argv=None):
     torch.set_num_threads(threads)
     timer = PhaseTimer(cuda_sync) if sync else PhaseTimer()
     clock = instrument(module, timer, warmup)
-    args = module.parse_args(script_argv)
+    args = parse_args(module.Args, getattr(module, "check_args", None), script_argv)  # as the script's __main__
     with tempfile.TemporaryDirectory() as workdir:
         here = os.getcwd()
         os.chdir(workdir)

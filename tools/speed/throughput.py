@@ -9,9 +9,9 @@ An entry is one of our scripts by short name (`td3`, `sac`, `oparl`, `redq`, `pp
 command prefix, each optionally followed by its own flags and optionally prefixed by `mkl-avx512:` to run
 it through tools/mkl_avx512.sh (MKL's AVX-512 kernels on AMD CPUs), e.g.
 
-    python tools/throughput.py td3 sac oparl "oparl --bf16" --env-id Hopper-v4 --threads 1
-    python tools/throughput.py oparl "mkl-avx512:oparl"   # the same script with tools/mkl_avx512.sh
-    python tools/throughput.py oparl "oparl --num-seeds 2" "2x:oparl"   # 2 seeds in one process, 2 processes at once
+    python tools/speed/throughput.py td3 sac oparl "oparl --bf16" --env-id Hopper-v4 --threads 1
+    python tools/speed/throughput.py oparl "mkl-avx512:oparl"   # the same script with tools/mkl_avx512.sh
+    python tools/speed/throughput.py oparl "oparl --num-seeds 2" "2x:oparl"   # 2 seeds in one process, 2 processes at once
 
 With `--window`, every entry runs once per repeat for L + T steps, and its figure is read from the
 `charts/SPS` that our scripts log for each window of 1000 steps (evaluations excluded), over the windows that
@@ -21,12 +21,12 @@ Each window is one sample (the median and range are over all windows of all repe
 process start instead of two, which is what a short GPU lease can afford. Another script (CleanRL's) is read
 by the cumulative charts/SPS it logs (see logged_sps) and must log it under runs/ in its working folder.
 
-    python tools/throughput.py "oparl --cudagraphs" "oparl --cudagraphs --num-seeds 16" "8x:oparl --cudagraphs --num-seeds 16" \
+    python tools/speed/throughput.py "oparl --cudagraphs" "oparl --cudagraphs --num-seeds 16" "8x:oparl --cudagraphs --num-seeds 16" \
         --cuda --window --env-id dm_control/cartpole-swingup-v0 --learning-starts 500 --steps 3500 --repeats 1 --csv scaling.csv
 
 An entry "Kx:..." runs K copies at once (each copy's steps/s is reported; its agent-steps/s are K times that),
 and an entry with `--num-seeds N` trains N seeds (agent-steps/s: N times its steps/s).
-    PYTHONPATH=../cleanrl python tools/throughput.py td3 "../cleanrl-venv/bin/python ../cleanrl/cleanrl/td3_continuous_action.py"
+    PYTHONPATH=../cleanrl python tools/speed/throughput.py td3 "../cleanrl-venv/bin/python ../cleanrl/cleanrl/td3_continuous_action.py"
 
 Every entry gets `--env-id E --total-timesteps N --learning-starts L --seed 1 --no-cuda` (no
 `--learning-starts` for a script without one, such as PPO, whose L steps are then ordinary ones;
@@ -44,7 +44,7 @@ import sys
 import tempfile
 import time
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 OURS = {f.removesuffix("_continuous_action.py") for f in os.listdir(REPO) if f.endswith("_continuous_action.py")}
 MKL_AVX512 = "mkl-avx512:"  # an entry's prefix: run it through tools/mkl_avx512.sh
 
@@ -237,7 +237,7 @@ def cpu_name() -> str:
 
 
 def gpu_name() -> str:
-    """The GPU's name: $GPU_NAME if set (tools/gpu_common.sh asks nvidia-smi once for all its steps), else asked in a
+    """The GPU's name: $GPU_NAME if set (tools/speed/gpu_common.sh asks nvidia-smi once for all its steps), else asked in a
     child process (a few seconds: a CUDA context held here would sit beside every timed run)."""
     if os.environ.get("GPU_NAME"):
         return os.environ["GPU_NAME"]
