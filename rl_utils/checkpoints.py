@@ -132,8 +132,8 @@ def split_seeds(state: dict, nets: dict, parts: dict, eval_returns: list, run_di
         checkpoint = {**state, "run_names": [os.path.basename(run_dir) for run_dir in run_dirs], "seed_index": k}
         checkpoint["eval_returns"] = eval_returns[k]
         checkpoint["envs"] = state["envs"][k : k + 1]
-        checkpoint.update({name: part_share(state[name], k) for name in parts})
-        if n > 1:
+        if n > 1:  # one seed's state is its own (an on-policy rollout has no seeds dimension to cut)
+            checkpoint.update({name: part_share(state[name], k) for name in parts})
             checkpoint["nets"] = {name: seed_share(sd, params[name], k) for name, sd in state["nets"].items()}
             checkpoint["optimizers"] = {
                 name: {

@@ -19,17 +19,22 @@ from conftest import (
     declared,
     load,
     needs_cuda,
+    parse,
     refusal,
     scalars,
     script_command,
 )
+from rl_utils import checkpoints, make_env
 
 
 # (total steps, first step of learning, checkpoint frequency) of the kill-and-resume runs, by the phase in which the
 # killed run's checkpoint falls. "learning": at step 500, where learning starts (the on-policy scripts: the first
 # episode end from there), mid-episode where the env is Hopper's. "random": at step 1000, before learning starts at
 # 1200; the resumed run then acts at random from the action space's restored generator for its first steps.
-PHASES = {"learning": (1500, 500, 500), "random": (2000, 1200, 1000)}
+# "trained": at step 1000, after 500 training steps, so that the checkpoint holds optimizer states (Adam's step
+# counts and moments) that a resume must restore: at "learning"'s checkpoint no optimizer of an off-policy script
+# has stepped yet.
+PHASES = {"learning": (1500, 500, 500), "random": (2000, 1200, 1000), "trained": (2000, 500, 1000)}
 # the on-policy scripts run ~1000 steps/s: a longer run keeps the kill (up to 1 s after the checkpoint) before its end
 ON_POLICY_STEPS = 3000
 
@@ -70,6 +75,8 @@ KILL_CASES = [
 ]
 KILL_CASES += [(script, "Hopper-v4", "learning") for script in SCRIPTS if script not in {s for s, _, _ in KILL_CASES}]
 KILL_CASES += [(script, "Hopper-v4", "random") for script in OFF_POLICY]
+# one case whose checkpoint holds optimizers that have stepped many times: a resume that drops their states fails it
+TRAINED_KILL_CASES = [("td3", "Hopper-v4", "trained")]
 # the recorded updates of --cudagraphs resume exactly too (the graphs are recorded anew after a resume)
 GRAPH_KILL_CASES = [
     pytest.param(s, "Hopper-v4", "learning", "--cudagraphs", marks=needs_cuda, id=f"{s}-cudagraphs") for s in OFF_POLICY
@@ -78,7 +85,7 @@ GRAPH_KILL_CASES = [
 
 @pytest.mark.parametrize(
     "script, env_id, phase, extra",
-    [pytest.param(s, e, p, None, id=f"{s}-{e}-{p}") for s, e, p in KILL_CASES] + GRAPH_KILL_CASES,
+    [pytest.param(s, e, p, None, id=f"{s}-{e}-{p}") for s, e, p in KILL_CASES + TRAINED_KILL_CASES] + GRAPH_KILL_CASES,
 )
 def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, env_id, phase, extra, tmp_path):
     total, learning_starts, checkpoint_frequency = phase_of(script, phase)
@@ -94,10 +101,15 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
     killed.send_signal(signal.SIGKILL)
     # not vacuous: the signal ended the run, before its last step (a finished run would resume as a no-op)
     assert killed.wait() == -signal.SIGKILL, "the run ended before the kill: the comparison would test nothing"
-    killed_at = torch.load(checkpoint, weights_only=True)["global_step"]
+    state = torch.load(checkpoint, weights_only=True)
+    killed_at = state["global_step"]
     assert killed_at < total
     if phase == "random":
         assert checkpoint_frequency <= killed_at < learning_starts  # the random phase goes on after the resume
+    if phase == "trained":  # every optimizer has stepped (the actor's every --policy-frequency steps) many times
+        for name, optimizer in state["optimizers"].items():
+            steps = [param_state["step"].item() for param_state in optimizer["state"].values()]
+            assert steps and min(steps) >= 200, (name, steps)
     resumed = subprocess.run(
         script_command(script, "--resume", "runs/killed", "--save-model"),
         cwd=tmp_path,
@@ -122,13 +134,13 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
         assert torch.equal(full_actor[name], resumed_actor[name]), name
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
 @pytest.mark.parametrize("env_id", ["Hopper-v4", "dm_control/cartpole-swingup-v0"])
-def test_a_checkpoint_restores_the_next_draw_of_every_random_generator(script, env_id, tmp_path):
+def test_a_checkpoint_restores_the_next_draw_of_every_random_generator(env_id, tmp_path):
     """Python's, NumPy's and torch's global generators, the action space's (the random phase's actions) and the
-    environment's own (its start states), through a checkpoint file and back."""
-    module = load(script)
-    env = module.make_env(env_id, seed=3)
+    environment's own (its start states), through a checkpoint file and back. Every script checkpoints and resumes
+    through rl_utils.checkpoints (Run.start and Run.end_step), so this holds for each; the kill-and-resume runs check
+    each script's use of it."""
+    env = make_env(env_id, seed=3)
 
     def draws():
         start_state, _ = env.reset()  # no seed: the env's generator decides
@@ -142,10 +154,13 @@ def test_a_checkpoint_restores_the_next_draw_of_every_random_generator(script, e
 
     env.reset(seed=3)
     draws()  # every generator moved on from its seed
-    module.write_checkpoint(str(tmp_path / "c.pt"), module.snapshot(module.Args(env_id=env_id), [env], 0, {}, {}))
+    args = load("td3").Args(env_id=env_id)
+    checkpoints.write_checkpoint(
+        str(tmp_path / "c.pt"), checkpoints.snapshot("td3_continuous_action.py", args, [env], 0, {}, {}, {})
+    )
     expected, after = draws(), draws()
     assert expected != after  # each call draws anew
-    module.restore(torch.load(tmp_path / "c.pt", weights_only=True), [env], {}, {})
+    checkpoints.restore(torch.load(tmp_path / "c.pt", weights_only=True), [env], {}, {}, {})
     assert draws() == expected
 
 
@@ -190,7 +205,7 @@ def test_resuming_a_finished_run_does_nothing(script, finished_run, monkeypatch,
     before = checkpoint.read_bytes()
     monkeypatch.chdir(cwd)
     module = load(script)
-    result = module.main(module.parse_args(["--resume", "runs/done"]))
+    result = module.main(parse(module, ["--resume", "runs/done"]))
     assert "had already finished its 400 steps" in capsys.readouterr().out
     assert [step for step, _ in result["eval_returns"]] == [0, 400]
     assert checkpoint.read_bytes() == before
@@ -201,6 +216,7 @@ def test_checkpoint_loads_without_running_code(script, finished_run):
     path = finished_run(script) / "runs" / "done" / "checkpoint.pt"
     checkpoint = torch.load(path, weights_only=True)
     assert checkpoint["global_step"] == 400 and checkpoint["script"] == f"{script}_continuous_action.py"
+    assert checkpoint["format"] == checkpoints.FORMAT
     if script in OFF_POLICY:
         assert checkpoint["buffer"]["rows"].shape[:2] == (1, 400)  # one seed's 400 rows
     else:
@@ -214,8 +230,9 @@ def one_line_error(result):
 
 
 @pytest.mark.parametrize("script", SHARED_RUN)
-def test_truncated_and_foreign_checkpoints_are_refused(script, finished_run, tmp_path, monkeypatch):
-    good = (finished_run(script) / "runs" / "done" / "checkpoint.pt").read_bytes()
+def test_truncated_foreign_and_old_checkpoints_are_refused(script, finished_run, tmp_path, monkeypatch):
+    path = finished_run(script) / "runs" / "done" / "checkpoint.pt"
+    good = path.read_bytes()
     cases = {
         "truncated": (good[: len(good) // 2], "is not a readable checkpoint"),
         "text": (b"hello", "is not a readable checkpoint"),
@@ -226,6 +243,10 @@ def test_truncated_and_foreign_checkpoints_are_refused(script, finished_run, tmp
     (tmp_path / "foreign").mkdir()
     torch.save({"script": "someone_else.py"}, tmp_path / "foreign" / "checkpoint.pt")
     cases["foreign"] = (None, "was not written by")
+    # the layout before rl_utils (format 1: every seed stacked in each network's parameters) does not load into it
+    (tmp_path / "old").mkdir()
+    torch.save({**torch.load(path, weights_only=True), "format": 1}, tmp_path / "old" / "checkpoint.pt")
+    cases["old"] = (None, "was written by an older")
 
     class Exploit:  # a pickle that would run code when loaded without weights_only
         def __reduce__(self):
@@ -289,7 +310,10 @@ def test_non_finite_loss_stops_with_the_step_and_the_last_good_state(script, tmp
 
 
 # (flags, part of the message); the off-policy scripts share OFF_POLICY_BAD_INPUTS, each adds its own (a script not
-# in EXTRA_BAD_INPUTS is held to its base's entry)
+# in EXTRA_BAD_INPUTS is held to its base's entry). The messages come from rl_utils.cli (its RULES, by flag name,
+# and the checks of pairs of flags), rl_utils.envs (the env ids), rl_utils.checkpoints (--resume) and a script's own
+# check_args (REDQ's); each row runs through the script's own command line, so a script that drops or renames a
+# flag, or stops passing its check_args, fails its rows.
 BAD_INPUTS = [
     (["--total-timesteps", "0"], "--total-timesteps must be > 0"),
     (["--gamma", "1.5"], "--gamma must be in [0, 1]"),
@@ -308,6 +332,8 @@ OFF_POLICY_BAD_INPUTS = [
     (["--tau", "0"], "--tau must be in (0, 1]"),
     (["--tau", "1.5"], "--tau must be in (0, 1]"),
     (["--cudagraphs", "--no-cuda"], "--cudagraphs needs a CUDA GPU"),
+    (["--num-seeds", "0"], "--num-seeds must be >= 1"),
+    (["--num-seeds", "2", "--run-name", "one"], "--run-name one names one folder for 2 seeds"),
 ]
 PPO_BAD_INPUTS = [
     (["--num-steps", "0"], "--num-steps must be > 0"),
@@ -347,6 +373,7 @@ EXTRA_BAD_INPUTS = {
         (["--num-min", "11"], "--num-min must be in [1, --num-q (10)]"),
         (["--utd-ratio", "0"], "--utd-ratio must be >= 1"),
         (["--policy-lr", "-1"], "--policy-lr must be > 0"),
+        (["--num-seeds", "2"], "--num-seeds: REDQ trains one seed per process"),
     ],
     "ppo": PPO_BAD_INPUTS,
     "rnd": PPO_BAD_INPUTS
@@ -390,10 +417,10 @@ def test_a_run_that_never_reaches_learning_starts_says_so(script, capsys):
     """Allowed (a quick check of the wiring), but not silent: a user who shortens --total-timesteps and keeps the
     default --learning-starts would otherwise get an untrained policy and no word about it."""
     module = load(script)
-    module.parse_args(["--learning-starts", "500", "--total-timesteps", "500"])  # steps 0-499: all random
+    parse(module, ["--learning-starts", "500", "--total-timesteps", "500"])  # steps 0-499: all random
     note = "note: --learning-starts (500) >= --total-timesteps (500): every step acts at random and the networks are never trained"
     assert capsys.readouterr().err == note + "\n"
-    module.parse_args(["--learning-starts", "500", "--total-timesteps", "501"])  # step 500 trains
+    parse(module, ["--learning-starts", "500", "--total-timesteps", "501"])  # step 500 trains
     assert capsys.readouterr().err == ""
 
 
@@ -403,4 +430,4 @@ def test_resume_without_checkpoint_is_refused(script, tmp_path, monkeypatch):
     (tmp_path / "runs" / "empty").mkdir(parents=True)
     module = load(script)
     with pytest.raises(SystemExit, match="holds no checkpoint.pt"):
-        module.parse_args(["--resume", "runs/empty"])
+        parse(module, ["--resume", "runs/empty"])
