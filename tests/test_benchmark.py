@@ -12,6 +12,8 @@ import pytest
 
 from conftest import REPO
 
+pytestmark = pytest.mark.slow  # every test here trains or sweeps
+
 BENCHMARK = os.path.join(REPO, "benchmark.sh")
 TINY = [
     "--total-timesteps",

@@ -12,6 +12,8 @@ import torch
 from conftest import ON_POLICY, REPO, SCRIPTS, cli_flags, declared, load, scalars, small_args, source
 from rl_utils import make_env
 
+pytestmark = pytest.mark.slow  # every test here trains or sweeps
+
 COMMON_TAGS = {"eval/episodic_return", "charts/episodic_return", "charts/episodic_length", "charts/SPS"}
 CRITIC_TAGS = {"losses/qf_loss", "losses/qf_values"}
 PPO_TAGS = {

@@ -7,6 +7,8 @@ import pytest
 
 from conftest import SCRIPTS, declared, load, small_args
 
+pytestmark = pytest.mark.slow  # every test here trains or sweeps
+
 # script: (env, total steps, learning starts, return the final evaluation must beat). A script without an entry
 # is held to its base's budget (a fork of TD3 to TD3's) until it declares its own here.
 BUDGETS = {

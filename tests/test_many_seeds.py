@@ -243,6 +243,7 @@ class PerturbedSeedEnvs(SeedEnvs):
         return next_obs, rewards, terminations, truncations, infos
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script", MANY_SEEDS)
 def test_another_seeds_environment_leaves_a_seeds_whole_run_bit_identical(script, tmp_path, monkeypatch):
     """The whole loop, not one update: a 3-seed process whose second seed sees other rewards gives the first and the
@@ -282,6 +283,7 @@ def test_a_seeds_initial_weights_are_those_of_a_single_seed_run_bit_for_bit(scri
             assert torch.equal(p[1], q), f"{type(alone).__name__}.{name}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script", MANY_SEEDS)
 def test_each_seed_is_an_ordinary_run(script, tmp_path):
     """Own folder, evaluation schedule and saved model; the saved actor is that seed's, a one-seed actor, and evaluates
@@ -319,6 +321,7 @@ def test_each_seed_is_an_ordinary_run(script, tmp_path):
 KILL_CASES = [("oparl", "Hopper-v4"), ("sac", ENV)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script, env_id", [c for c in KILL_CASES if c[0] in MANY_SEEDS])
 def test_a_killed_many_seed_process_resumes_identical(script, env_id, tmp_path):
     flags = cli_flags(script, total_timesteps=1500, learning_starts=500, batch_size=64, eval_frequency=500, eval_episodes=1)
@@ -457,6 +460,5 @@ def test_each_seeds_batch_comes_from_its_own_transitions():
     for k in range(3):
         seen = batch.rewards[k].unique()
         assert set(seen.tolist()) <= {100.0 * k + i for i in range(5)} and len(seen) > 1
-        assert torch.equal(batch.observations[k, ..., 0], batch.rewards[k]) and torch.equal(
-            batch.actions[k, ..., 0], seen.new_tensor(batch.rewards[k])
-        )
+        assert torch.equal(batch.observations[k, ..., 0], batch.rewards[k])
+        assert torch.equal(batch.actions[k, ..., 0], batch.rewards[k])

@@ -83,6 +83,7 @@ GRAPH_KILL_CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "script, env_id, phase, extra",
     [pytest.param(s, e, p, None, id=f"{s}-{e}-{p}") for s, e, p in KILL_CASES + TRAINED_KILL_CASES] + GRAPH_KILL_CASES,

@@ -15,6 +15,7 @@ import same_numbers  # noqa: E402
 RECORDED = os.path.join(REPO, "tests", "data", "same_numbers.json")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script", list(same_numbers.RUNS))
 def test_a_short_run_logs_the_recorded_numbers(script):
     with open(RECORDED) as f:

@@ -29,6 +29,7 @@ def load_tool(name: str):
         sys.path.pop(0)
 
 
+@pytest.mark.slow
 def test_throughput_reports_a_median_table_with_ratios():
     result = tool(
         "throughput.py",
@@ -56,6 +57,7 @@ def test_throughput_reports_a_median_table_with_ratios():
     assert warmups == ["warm-up td3 --batch-size 32", "warm-up td3 --batch-size 32 --bf16"]  # each entry's, as it ends
 
 
+@pytest.mark.slow
 def test_throughput_counts_the_seeds_an_entry_trains_at_once():
     throughput = load_tool("throughput")
 
@@ -73,6 +75,7 @@ def test_throughput_counts_the_seeds_an_entry_trains_at_once():
         assert float(cells[5]) == pytest.approx(2 * float(cells[2]), abs=0.2), line  # both rounded to 0.1
 
 
+@pytest.mark.slow
 def test_throughput_runs_an_entry_prefixed_mkl_avx512_through_the_wrapper():
     throughput = load_tool("throughput")
 
@@ -94,6 +97,7 @@ def test_throughput_runs_an_entry_prefixed_mkl_avx512_through_the_wrapper():
     assert result.returncode != 0 and "names no script or command" in result.stderr
 
 
+@pytest.mark.slow
 def test_throughput_runs_a_script_and_imports_given_relative_to_the_caller(tmp_path, monkeypatch):
     """Entries run in a scratch folder; a relative script path and PYTHONPATH still mean the caller's."""
     (tmp_path / "lib").mkdir()
@@ -139,6 +143,7 @@ def test_throughput_survives_a_run_that_writes_more_than_a_pipe_holds(tmp_path):
     assert result.returncode != 0 and result.stderr.strip().splitlines()[-1].endswith("failed (3): the cause")
 
 
+@pytest.mark.slow
 def test_throughput_window_reads_the_logged_rate_of_each_timed_window(tmp_path):
     """--window: one run per entry and repeat; every 1000-step window after learning starts + warm-up is a sample, and
     a process's agent-steps/s are its steps/s times its seeds."""
