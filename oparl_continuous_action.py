@@ -1,8 +1,8 @@
 # OPARL (Yang et al., "Efficient Reinforcement Learning via Decoupling Exploration and Utilization"): TD3 with an
 # ensemble of critics, a pessimistic actor trained on their min (the evaluated policy), an optimistic actor trained on
 # their max (explores on a share of the steps), and a periodic copy of the pessimistic actor into the optimistic one.
-# A copy of td3_continuous_action.py that changes only what OPARL changes: `diff td3_continuous_action.py
-# oparl_continuous_action.py`. Where the paper and the authors' released code (yydsok/OPARL) disagree, it follows the release.
+# A copy of td3_continuous_action.py (`diff td3_continuous_action.py oparl_continuous_action.py`); where the paper and
+# the authors' code (yydsok/OPARL) disagree it follows the code, whose critics are SiLU MLPs (--critic-style td3: TD3's).
 # The machinery (checks, envs, logging, checkpoints, --num-seeds, --cudagraphs) is imported from rl_utils.
 import functools
 import math
@@ -45,7 +45,7 @@ class Args:
     run_name: Optional[str] = None
     """the run folder under runs/, {seed} where the seed goes (default: {env_id}__{exp_name}__{seed}__{unix time})"""
     num_seeds: int = 1
-    """train seeds seed, seed+1, ..., seed+num_seeds-1 side by side in this process, each an ordinary run in its own folder"""
+    """train seeds seed, ..., seed+num_seeds-1 side by side in this process, each in its own run folder (docs/usage.md)"""
     checkpoint_frequency: int = 0
     """write `checkpoint.pt` into each run folder every this many steps, and at the end (0: never)"""
     resume: Optional[str] = None
@@ -112,7 +112,7 @@ class QEnsemble(nn.Module):
             p = torch.zeros(num_q, *shape)
             if style == "td3":  # the default init of nn.Linear, drawn independently per member
                 p.uniform_(-(fan_in**-0.5), fan_in**-0.5)
-            elif not bias:  # the release: zero biases, weights N(0, 1/(2 sqrt(fan_in))) cut at +-2 (i.e. hardly cut)
+            elif not bias:  # the release: zero biases; weights normal, std 1/(2 sqrt(fan_in)), cut at +-2 (~60 stds)
                 nn.init.trunc_normal_(p, std=0.5 * fan_in**-0.5)
             return nn.Parameter(p)
 
@@ -155,7 +155,7 @@ class Actor(nn.Module):
 
 @torch.no_grad()
 def noisy_action(obs, actor: Actor, exploration_noise: float) -> torch.Tensor:
-    """The actor's action plus Gaussian noise of std exploration_noise * action_scale, clipped to the bounds."""
+    """For one observation [obs_dim], the actor's action plus noise of std exploration_noise * action_scale, clipped."""
     action = actor(obs)
     noise = torch.randn_like(action) * (actor.action_scale * exploration_noise)
     return (action + noise).clamp(actor.action_low, actor.action_high)
@@ -200,8 +200,8 @@ def optimistic_steps(global_step: int, args: Args) -> int:
 
 @torch.no_grad()
 def optimistic_action(obs, optimistic_actor: Actor, qf: QEnsemble, args: Args):
-    """pi_opt(s) + Gaussian noise, drawn --num-candidates times; the candidate whose Q-values have the largest std
-    across the ensemble is taken (paper, Setup). One candidate needs no critic pass."""
+    """For one observation [obs_dim], pi_opt(s) + Gaussian noise, drawn --num-candidates times; the candidate whose
+    Q-values have the largest std across the ensemble is taken (paper, Setup). One candidate needs no critic pass."""
     candidates = optimistic_actor(obs).expand(args.num_candidates, -1)
     candidates = candidates + torch.randn_like(candidates) * (optimistic_actor.action_scale * args.exploration_noise)
     candidates = candidates.clamp(optimistic_actor.action_low, optimistic_actor.action_high)
@@ -266,7 +266,8 @@ def main(args: Args):
 
     def update(batch: Batch, policy_step: bool) -> dict:
         """One training iteration: the critics; every --policy-frequency steps both actors and the target
-        networks too. Returns what gets logged, by TensorBoard tag, one value per seed."""
+        networks too. Returns what gets logged, by TensorBoard tag, one value per seed
+        (per_seed's results carry a leading seeds dimension: losses [num_seeds], Q-values [num_seeds, num_q, batch])."""
         with bf16_autocast(device, args.bf16):
             qf_loss, qf_a_values = per_seed(critic_loss)(batch, qf, target_pessimistic_actor, qf_target, args)
             optimize(qf_loss, "qf_loss", q_optimizer)

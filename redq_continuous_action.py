@@ -44,7 +44,7 @@ class Args:
     run_name: Optional[str] = None
     """the run folder under runs/, {seed} where the seed goes (default: {env_id}__{exp_name}__{seed}__{unix time})"""
     num_seeds: int = 1
-    """train seeds seed, seed+1, ..., seed+num_seeds-1 side by side in this process, each an ordinary run in its own folder"""
+    """train seeds seed, ..., seed+num_seeds-1 side by side in this process, each in its own run folder (docs/usage.md)"""
     checkpoint_frequency: int = 0
     """write `checkpoint.pt` into each run folder every this many steps, and at the end (0: never)"""
     resume: Optional[str] = None
@@ -283,7 +283,8 @@ def main(args: Args):
 
     def update(batches: Batch) -> dict:
         """One environment step's training: G critic updates, each on its own batch of `batches` and followed by
-        a target update, then the actor and alpha. Returns what gets logged, by TensorBoard tag, one value per seed."""
+        a target update, then the actor and alpha. Returns what gets logged, by TensorBoard tag, one value per seed
+        (per_seed's results carry a leading seeds dimension: losses [num_seeds], Q-values [num_seeds, num_q, batch])."""
         with bf16_autocast(device, args.bf16):
             for i in range(args.utd_ratio):  # G critic updates per environment step
                 batch = Batch(*(field[:, i] for field in batches))

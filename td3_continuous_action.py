@@ -43,7 +43,7 @@ class Args:
     run_name: Optional[str] = None
     """the run folder under runs/, {seed} where the seed goes (default: {env_id}__{exp_name}__{seed}__{unix time})"""
     num_seeds: int = 1
-    """train seeds seed, seed+1, ..., seed+num_seeds-1 side by side in this process, each an ordinary run in its own folder"""
+    """train seeds seed, ..., seed+num_seeds-1 side by side in this process, each in its own run folder (docs/usage.md)"""
     checkpoint_frequency: int = 0
     """write `checkpoint.pt` into each run folder every this many steps, and at the end (0: never)"""
     resume: Optional[str] = None
@@ -140,7 +140,7 @@ class Actor(nn.Module):
 
 @torch.no_grad()
 def noisy_action(obs, actor: Actor, exploration_noise: float) -> torch.Tensor:
-    """The actor's action plus Gaussian noise of std exploration_noise * action_scale, clipped to the bounds."""
+    """For one observation [obs_dim], the actor's action plus noise of std exploration_noise * action_scale, clipped."""
     action = actor(obs)
     noise = torch.randn_like(action) * (actor.action_scale * exploration_noise)
     return (action + noise).clamp(actor.action_low, actor.action_high)
@@ -222,7 +222,8 @@ def main(args: Args):
 
     def update(batch: Batch, policy_step: bool) -> dict:
         """One training iteration: the critics; every --policy-frequency steps the actor and the target
-        networks too. Returns what gets logged, by TensorBoard tag, one value per seed."""
+        networks too. Returns what gets logged, by TensorBoard tag, one value per seed
+        (per_seed's results carry a leading seeds dimension: losses [num_seeds], Q-values [num_seeds, num_q, batch])."""
         with bf16_autocast(device, args.bf16):
             qf_loss, qf_a_values = per_seed(critic_loss)(batch, qf, target_actor, qf_target, args)
             optimize(qf_loss, "qf_loss", q_optimizer)
