@@ -23,6 +23,6 @@ def test_every_script_is_covered_by_each_per_script_table():
         if not any(s in table for s in ancestry(script))  # its own entry or its nearest base's
     ]
     assert not uncovered, "; ".join(uncovered) + " (docs/forking.md)"
-    for script in SCRIPTS:
+    for script in SCRIPTS:  # a kill-and-resume case once learning has started; for a replay buffer, one in the random phase
         phases = {phase for s, _, phase in KILL_CASES if s == script}
-        assert phases == ({"learning", "random"} if script in OFF_POLICY else {"learning"}), script
+        assert phases & {"learning", "trained"} and ("random" in phases) == (script in OFF_POLICY), (script, phases)

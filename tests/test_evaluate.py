@@ -1,7 +1,6 @@
-"""tools/evaluate.py on models the scripts save (plain single-seed state_dicts, a seed of a --num-seeds process's
-included): it reproduces the script's own last evaluation, and bad input gets one line."""
+"""tools/evaluate.py on models the scripts save (plain single-seed state_dicts; a seed of a --num-seeds process's:
+tests/test_many_seeds.py): it reproduces the script's own last evaluation, and bad input gets one line."""
 
-import dataclasses
 import os
 import subprocess
 import sys
@@ -36,29 +35,6 @@ def test_evaluating_a_saved_model_reproduces_the_scripts_last_evaluation(script,
     assert returns.mean() == pytest.approx(last_eval, rel=1e-6)
     # another seed sees other start states
     assert evaluate.main([model, "--seed", str(SEED + 101), "--episodes", "2"]).mean() != pytest.approx(last_eval, rel=1e-6)
-
-
-def several_seeds_allowed(script: str) -> bool:
-    """Whether a script trains --num-seeds 2 in one process (REDQ refuses)."""
-    module = load(script)
-    if "num_seeds" not in {f.name for f in dataclasses.fields(module.Args)}:
-        return False
-    return all(ok for ok, _ in getattr(module, "check_args", lambda args: [])(module.Args(num_seeds=2)))
-
-
-@pytest.mark.parametrize("script", [s for s in SCRIPTS if several_seeds_allowed(s)])
-def test_a_seed_of_a_several_seed_process_saves_a_model_that_evaluates_as_that_seed(script, tmp_path, monkeypatch):
-    """Each seed of a 2-seed process saves its model in its own run folder, in a single-seed run's form: the tool loads
-    it into the script's single-seed network and repeats that seed's last evaluation (on its seed + 100)."""
-    monkeypatch.chdir(tmp_path)
-    module = load(script)
-    result = module.main(small_args(module, env_id="Pendulum-v1", seed=SEED, num_seeds=2, eval_episodes=2, save_model=True))
-    models = [os.path.join(run_dir, f"{script}_continuous_action.cleanrl_model") for run_dir in result["run_dirs"]]
-    last_evals = [returns[-1][1] for returns in result["seeds_eval_returns"]]
-    assert last_evals[0] != pytest.approx(last_evals[1], rel=1e-3)  # the two seeds' policies differ
-    for k in range(2):  # each seed's model evaluates as its seed (vmapped in training: to rounding)
-        returns = evaluate.main([models[k], "--seed", str(SEED + k + 100), "--episodes", "2"])
-        assert returns.mean() == pytest.approx(last_evals[k], rel=1e-6)
 
 
 def test_names_are_inferred_from_the_run_folder():
@@ -102,8 +78,11 @@ def test_bad_input_gets_one_line(tmp_path, monkeypatch):
     ]
     (tmp_path / "junk.cleanrl_model").write_text("not a model")
     cases.append(([str(tmp_path / "junk.cleanrl_model"), "--algo", "td3", "--env-id", "Pendulum-v1"], "could not load"))
-    for flags, message in cases:
-        done = run_cli(*flags, cwd=tmp_path)
-        assert done.returncode != 0, flags
-        lines = done.stderr.strip().splitlines()
-        assert len(lines) == 1 and message in lines[0], (flags, done.stderr)
+    for flags, message in cases:  # in this process: the one-line SystemExit the command line prints
+        with pytest.raises(SystemExit) as exit_info:
+            evaluate.main(flags)
+        assert str(exit_info.value).startswith("error: ") and "\n" not in str(exit_info.value), flags
+        assert message in str(exit_info.value), (flags, str(exit_info.value))
+    done = run_cli(*cases[-1][0], cwd=tmp_path)  # and once on the command line: one line on stderr, exit status 1
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and len(lines) == 1 and lines[0].startswith("error: ") and cases[-1][1] in lines[0]

@@ -10,6 +10,7 @@ import os
 import random
 import signal
 import subprocess
+import sys
 import time
 
 import gymnasium as gym
@@ -18,10 +19,13 @@ import pytest
 import torch
 import torch.nn as nn
 
-from conftest import OFF_POLICY, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
+from conftest import OFF_POLICY, REPO, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
 from rl_utils import SeedEnvs, evaluate, per_seed, stack_seeds
 from rl_utils import checkpoints as ckpt
 from rl_utils.cli import validate
+
+sys.path.insert(0, os.path.join(REPO, "tools"))
+import evaluate as evaluate_tool  # noqa: E402
 
 
 def accepts_many_seeds(script) -> bool:
@@ -286,13 +290,23 @@ def test_a_seeds_initial_weights_are_those_of_a_single_seed_run_bit_for_bit(scri
 @pytest.mark.slow
 @pytest.mark.parametrize("script", MANY_SEEDS)
 def test_each_seed_is_an_ordinary_run(script, tmp_path):
-    """Own folder, evaluation schedule and saved model; the saved actor is that seed's, a one-seed actor, and evaluates
-    to its logged return; every seed learns its own weights."""
+    """Own folder, evaluation schedule and saved model; the saved actor is that seed's, a one-seed actor, and
+    tools/evaluate.py evaluates it to its logged return; every seed learns its own weights."""
     module = load(script)
     flags = cli_flags(script, total_timesteps=600, learning_starts=300, batch_size=64, eval_frequency=300, eval_episodes=1)
-    result = subprocess.run(
+    result = subprocess.run(  # Pendulum: short evaluation episodes
         script_command(
-            script, "--env-id", ENV, *flags, "--seed", "4", "--num-seeds", "2", "--run-name", "r{seed}", "--save-model"
+            script,
+            "--env-id",
+            "Pendulum-v1",
+            *flags,
+            "--seed",
+            "4",
+            "--num-seeds",
+            "2",
+            "--run-name",
+            "r{seed}",
+            "--save-model",
         ),
         cwd=tmp_path,
         capture_output=True,
@@ -301,30 +315,31 @@ def test_each_seed_is_an_ordinary_run(script, tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert sorted(os.listdir(tmp_path / "runs")) == ["r4", "r5"]
+    envs = SeedEnvs("Pendulum-v1", [0])
+    obs_dim, space = envs.obs_dim, envs.action_space
     actors = []
     for seed in (4, 5):
         run_dir = tmp_path / "runs" / f"r{seed}"
         logged = scalars(str(run_dir))["eval/episodic_return"]
         assert [step for step, _ in logged] == [0, 300, 600]
-        saved = torch.load(run_dir / f"{script}_continuous_action.cleanrl_model", weights_only=True)
-        envs = SeedEnvs(ENV, [seed + 100])
-        actor = module.Actor(envs.obs_dim, envs.action_space)
-        actor.load_state_dict(saved["actor"])  # a one-seed actor, as a single-seed run saves it
-        act = actor.deterministic_action if hasattr(actor, "deterministic_action") else actor
-        returns = evaluate(lambda obs: act(torch.as_tensor(obs)).detach().numpy(), envs, [seed + 100], 1)
-        assert returns.mean() == pytest.approx(logged[-1][1], rel=1e-4)
+        model = str(run_dir / f"{script}_continuous_action.cleanrl_model")
+        saved = torch.load(model, weights_only=True)
+        module.Actor(obs_dim, space).load_state_dict(saved["actor"])  # a one-seed actor, as a single-seed run saves it
+        returns = evaluate_tool.main([model, "--env-id", "Pendulum-v1", "--seed", str(seed + 100), "--episodes", "1"])
+        assert returns.mean() == pytest.approx(logged[-1][1], rel=1e-4)  # evaluated in training: to vmap's rounding
         actors.append(saved["actor"])
     assert any(not torch.equal(actors[0][k], actors[1][k]) for k in actors[0])
 
 
-# (script, env): a MuJoCo task resumes mid-episode (its seeds' episodes end at different steps)
-KILL_CASES = [("oparl", "Hopper-v4"), ("sac", ENV)]
+# (script, env): Hopper's seeds' episodes end at different steps, so the process resumes mid-episode in each env; SAC's
+# log_alpha is the one trained tensor outside a network that a resume must cut and join per seed
+KILL_CASES = [("sac", "Hopper-v4")]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("script, env_id", [c for c in KILL_CASES if c[0] in MANY_SEEDS])
 def test_a_killed_many_seed_process_resumes_identical(script, env_id, tmp_path):
-    flags = cli_flags(script, total_timesteps=1500, learning_starts=500, batch_size=64, eval_frequency=500, eval_episodes=1)
+    flags = cli_flags(script, total_timesteps=1200, learning_starts=500, batch_size=64, eval_frequency=600, eval_episodes=1)
     flags = ["--env-id", env_id, *flags, "--num-seeds", "2", "--save-model"]
 
     def start(name, *extra):
@@ -342,7 +357,7 @@ def test_a_killed_many_seed_process_resumes_identical(script, env_id, tmp_path):
     killed.send_signal(signal.SIGKILL)
     assert killed.wait() == -signal.SIGKILL, "the run ended before the kill: the comparison would test nothing"
     killed_at = torch.load(checkpoints[0], weights_only=True)["global_step"]
-    assert 500 < killed_at < 1500  # after the optimizers have stepped
+    assert 500 < killed_at < 1200  # after the optimizers have stepped
     resumed = subprocess.run(
         script_command(script, "--resume", "runs/killed2", "--save-model"),
         cwd=tmp_path,

@@ -1,4 +1,4 @@
-"""Do the scripts still compute the same numbers? Each script trains a short run (seed 1, Pendulum-v1, a few
+"""Do the scripts still compute the same numbers? Each script trains a short run (seed 1, Pendulum-v1, about a
 thousand steps with learning) and every TensorBoard scalar it logs but the speed is compared, bit for bit, with
 the values recorded at an earlier commit, or with another checkout's scripts run here and now:
 
@@ -19,13 +19,13 @@ import sys
 import tempfile
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SHORT_OFF_POLICY = ["--total-timesteps", "1500", "--learning-starts", "500", "--batch-size", "64"]
-SHORT_ON_POLICY = ["--total-timesteps", "2048", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2"]
-EVAL = ["--eval-frequency", "500", "--eval-episodes", "2"]
+SHORT_OFF_POLICY = ["--total-timesteps", "1000", "--learning-starts", "500", "--batch-size", "64"]
+SHORT_ON_POLICY = ["--total-timesteps", "1024", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2"]
+EVAL = ["--eval-frequency", "500", "--eval-episodes", "1"]
 # each script's short run: its defaults, shorter, with its own mechanisms reached (OPARL's reset and candidates)
 RUNS = {
     "td3": SHORT_OFF_POLICY,
-    "oparl": [*SHORT_OFF_POLICY, "--reset-frequency", "300", "--num-candidates", "3"],
+    "oparl": [*SHORT_OFF_POLICY, "--reset-frequency", "200", "--num-candidates", "3"],
     "sac": SHORT_OFF_POLICY,
     "redq": [*SHORT_OFF_POLICY, "--utd-ratio", "2", "--num-q", "4"],
     "ppo": SHORT_ON_POLICY,
