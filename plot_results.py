@@ -9,8 +9,8 @@
 Writes into --out:
   {prefix}curves.png        eval/episodic_return per env, one line per algorithm: mean over seeds of
                             each run's curve smoothed over --smoothing evaluations (default 10), shaded
-                            +- half a std (the paper's Figure 2 style)
-  {prefix}table.md          mean +- std of the final evaluation per algorithm and env (best in bold), an
+                            +- half a sample std (ddof 1; the paper's Figure 2 style)
+  {prefix}table.md          mean +- sample std (ddof 1) of the final evaluation per algorithm and env (best in bold), an
                             average row, OPARL's improvement over each baseline, every run's final
                             evaluation per seed, the IQM, median, mean and optimality gap of normalised
                             scores with 95% CIs, the probability of improvement of OPARL over each baseline
@@ -183,6 +183,13 @@ def aggregate_metrics(scores: np.ndarray) -> np.ndarray:
     return np.array([getattr(metrics, f"aggregate_{name.replace(' ', '_')}")(scores) for name in METRICS])
 
 
+def sample_std(curves: np.ndarray) -> np.ndarray:
+    """The sample standard deviation (ddof 1) over runs at each step, ignoring NaNs; 0 where one run has a value."""
+    count = np.sum(~np.isnan(curves), 0)
+    centred = np.where(np.isnan(curves), 0.0, curves - np.nanmean(curves, 0))
+    return np.sqrt(np.sum(centred**2, 0) / np.maximum(count - 1, 1))
+
+
 def smooth(values: np.ndarray, window: int = SMOOTHING) -> np.ndarray:
     """Trailing moving average; the first points average what there is."""
     sums = np.cumsum(np.insert(values, 0, 0.0))
@@ -250,7 +257,7 @@ def plot_curves(runs: list, path: str, window: int = SMOOTHING):
             curves = np.full((len(group), len(steps)), np.nan)
             for i, r in enumerate(group):  # each run on the common grid; NaN where a run stopped early
                 curves[i, np.searchsorted(steps, r.steps)] = smooth(r.returns, window)
-            mean, std = np.nanmean(curves, 0), np.nanstd(curves, 0)
+            mean, std = np.nanmean(curves, 0), sample_std(curves)
             ax.plot(steps, mean, color=colors[algo], label=f"{algo} ({len(group)} seed{'s' if len(group) > 1 else ''})")
             ax.fill_between(steps, mean - std / 2, mean + std / 2, color=colors[algo], alpha=0.2)
         ax.set_title(env.removeprefix("dm_control/"))
@@ -450,11 +457,13 @@ def write_table(
     paper = {env: row for env, row in paper.items() if env in envs}  # Table 1 has no MuJoCo rows
     paper_algos = [a for a in ("oparl", "redq", "sac", "td3") if any(f"{a}_mean" in row for row in paper.values())]
     lines = [
-        f"Final evaluation return (mean +- std over seeds; seeds per cell in parentheses) at {' / '.join(map(str, budgets))} steps."
+        f"Final evaluation return (mean +- sample std over seeds, ddof 1; seeds per cell in parentheses) at "
+        f"{' / '.join(map(str, budgets))} steps."
     ]
     if paper:
         lines.append(
-            "Columns marked *paper* are the paper's Table 1 (1M steps, 10 seeds), copied for reference: a different budget."
+            "Columns marked *paper* are the paper's Table 1 (1M steps, +- its standard deviation over 10 trials), copied for "
+            "reference: a different budget."
         )
     lines.append("")
     header = ["task", *algos, *(f"{a} *paper*" for a in paper_algos)]
@@ -467,7 +476,8 @@ def write_table(
             if (a, env) not in cell:
                 row.append("")
                 continue
-            text = f"{means[a]:.1f} +- {cell[(a, env)].std():.1f} ({len(cell[(a, env)])})"
+            values = cell[(a, env)]
+            text = f"{means[a]:.1f} +- {values.std(ddof=1):.1f} ({len(values)})" if len(values) > 1 else f"{means[a]:.1f} (1)"
             if len(budgets) > 1:
                 text += f" at {steps[(a, env)]}"
             row.append(f"**{text}**" if means[a] == best and len(means) > 1 else text)

@@ -53,12 +53,23 @@ def test_table_has_mean_std_best_average_and_improvement(sweep, tmp_path):
     out = str(tmp_path / "out")
     plot([sweep, "--out", out, "--no-paper"])
     table = open(os.path.join(out, "table.md")).read()
-    assert "| cartpole-swingup-v0 | **200.0 +- 81.6 (3)** | 50.0 +- 0.0 (3) |" in table
-    assert "| walker-walk-v0 | **900.0 +- 0.0 (3)** | 700.0 +- 81.6 (3) |" in table
+    # the sample standard deviation (ddof 1): 100 for 100, 200, 300 (the population's would be 81.6)
+    assert "| cartpole-swingup-v0 | **200.0 +- 100.0 (3)** | 50.0 +- 0.0 (3) |" in table
+    assert "| walker-walk-v0 | **900.0 +- 0.0 (3)** | 700.0 +- 100.0 (3) |" in table
+    assert "mean +- sample std over seeds, ddof 1" in table
     assert "| average (2 tasks) | 550.0 | 375.0 |" in table
     assert "OPARL vs td3: +46.7% on the average row" in table
     for name in ("curves.png", "iqm.png", "eval_series.csv", "final_returns.csv"):
         assert os.path.getsize(os.path.join(out, name)) > 0
+
+
+def test_one_seed_gets_no_spread_and_the_curves_band_is_the_sample_std(tmp_path):
+    root = str(tmp_path / "runs")
+    write_run(root, "td3_continuous_action", DMC_A, 1, [0, 10, 40])
+    plot([root, "--out", str(tmp_path / "out"), "--no-paper"])
+    assert "| cartpole-swingup-v0 | 40.0 (1) |" in open(tmp_path / "out" / "table.md").read()
+    curves = np.array([[1.0, 2.0, np.nan], [3.0, 5.0, 7.0]])  # the third step reached by one run alone
+    np.testing.assert_allclose(pr.sample_std(curves), [np.sqrt(2), np.sqrt(4.5), 0.0])
 
 
 def test_final_returns_csv_has_one_row_per_run(sweep, tmp_path):
@@ -219,7 +230,7 @@ def test_cut_short_runs_are_named_and_left_out_of_the_table(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "cut short before step 10000" in err and "seed 3 (at 5000)" in err
     table = open(os.path.join(out, "table.md")).read()
-    assert "40.0 +- 10.0 (2)" in table
+    assert "40.0 +- 14.1 (2)" in table  # the sample std of 30 and 50
 
 
 @pytest.mark.parametrize(
