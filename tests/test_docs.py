@@ -63,12 +63,12 @@ def test_every_relative_link_points_to_something_that_exists(page):
 
 
 BASH = re.compile(r"^```bash\n(.*?)^```", re.S | re.M)
-PREFIXES = {"bash tools/mkl_avx512.sh", "nice", "setsid", "nohup", "time", "/usr/bin/time"}  # run what follows them
+WRAPPERS = {"nice", "setsid", "nohup", "time", "/usr/bin/time"}  # each runs the command that follows it
 
 
 def commands(path: str) -> list:
     """Each command of the page's ```bash blocks as its words: continued lines joined, comments dropped, split at
-    &&, ||, ;, | and $( ); environment assignments and the wrappers in PREFIXES taken off."""
+    &&, ||, ;, | and $( ); environment assignments and wrappers taken off."""
     found = []
     for block in BASH.findall(open(path).read()):
         if "git checkout" in block or "git worktree add" in block:
@@ -85,14 +85,21 @@ def commands(path: str) -> list:
                     command = []
                 else:
                     command.append(word.rstrip(")"))
-    unwrapped = []
-    for words in filter(None, found):
-        while words and (re.match(r"[A-Z_]+=", words[0]) or words[0] in PREFIXES or words[0].startswith("-n")):
+    return [unwrap(words) for words in found if words]
+
+
+def unwrap(words: list) -> list:
+    """A command without its environment assignments and wrappers (nice -n N, tools/mkl_avx512.sh, ...)."""
+    while words:
+        if re.match(r"[A-Z_]+=", words[0]) or words[0] in WRAPPERS:
             words = words[1:]
-        if words[:3] == ["bash", "tools/mkl_avx512.sh", *words[2:3]] and words[1] == "tools/mkl_avx512.sh":
+        elif words[0] == "-n":  # nice's niceness
             words = words[2:]
-        unwrapped.append(words)
-    return unwrapped
+        elif words[:2] == ["bash", "tools/mkl_avx512.sh"]:
+            words = words[2:]
+        else:
+            break
+    return words
 
 
 def script_flags(path: str) -> set:
@@ -130,6 +137,7 @@ def unknown_in(words: list, created: frozenset = frozenset()) -> list:
 
 
 def test_the_command_check_finds_a_missing_file_and_an_unknown_flag():
+    assert unwrap(["nice", "-n", "10", "bash", "tools/mkl_avx512.sh", "python", "x.py"]) == ["python", "x.py"]
     assert unknown_in(["python", "td3_continuous_action.py", "--env-id", "Hopper-v4", "--no-cuda"]) == []
     assert unknown_in(["python", "td3_continuous_action.py", "--env", "Hopper-v4"]) == [
         "td3_continuous_action.py takes no --env"

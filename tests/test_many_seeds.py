@@ -166,9 +166,14 @@ def one_update(result, batch):
     return result["update"](batch, *[True] * flags)
 
 
+def params(result) -> dict:
+    """Every network's parameters in main's result, by network and parameter name."""
+    return {f"{name}.{p}": t for name, net in modules(result).items() for p, t in net.named_parameters()}
+
+
 def seed_params(result, k) -> dict:
     """Seed k's cut of every (stacked) network's parameters."""
-    return {f"{name}.{p}": t[k] for name, net in modules(result).items() for p, t in net.named_parameters()}
+    return {name: t[k] for name, t in params(result).items()}
 
 
 @pytest.mark.parametrize("script", [pytest.param(s, marks=pytest.mark.xdist_group(f"many-{s}")) for s in MANY_SEEDS])
@@ -230,10 +235,6 @@ def test_a_seeds_update_is_the_one_seed_update_on_the_same_batch(script, short_r
     assert checked
     load_state(many, before_many)
     load_state(one, before_one)
-
-
-def params(result) -> dict:
-    return {f"{name}.{p}": t for name, net in modules(result).items() for p, t in net.named_parameters()}
 
 
 class PerturbedSeedEnvs(SeedEnvs):
