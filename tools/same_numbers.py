@@ -1,24 +1,26 @@
-"""Do the scripts still compute the same numbers? Each script trains a short run (seed 1, Pendulum-v1, about a
-thousand steps with learning) and every TensorBoard scalar it logs but the speed is compared, bit for bit, with
-the values recorded at an earlier commit, or with another checkout's scripts run here and now:
+"""Do the scripts still compute the same numbers as the reference commit? Each script trains a short run (seed 1,
+Pendulum-v1, about a thousand steps with learning), here and now, once with today's scripts and once with the
+reference commit's, and every TensorBoard scalar both log but the speed is compared, bit for bit:
 
-    python tools/same_numbers.py --check tests/data/same_numbers.json           # against the recorded values
-    python tools/same_numbers.py --record tests/data/same_numbers.json          # record them anew
-    python tools/same_numbers.py --against ../old-checkout                      # run both, compare
+    python tools/same_numbers.py                          # against the reference commit (REFERENCE_FILE)
+    python tools/same_numbers.py --against 1a2b3c4        # against another commit of this clone
+    python tools/same_numbers.py --against ../old-checkout  # against another checkout's scripts
 
-Float32 results depend on the CPU's kernels, so the runs pin MKL and PyTorch to their AVX2 code paths
-(MKL_CBWR, ATEN_CPU_CAPABILITY), which every x86-64 CPU we run on has: recorded on one such CPU, the values hold
-on another. tests/test_same_numbers.py runs the --check.
+Float32 results differ between CPUs in their last bits (each CPU's kernels sum in their own order), so values
+recorded on one machine cannot be checked on another; both sides run on this machine, in the same environment
+(one thread each). The reference commit is the commit before the next deliberate numerical change: a change that
+keeps the numbers must pass against it, and a commit that changes them on purpose moves it (docs/tests.md).
+tests/test_same_numbers.py runs this for each script.
 """
 
 import argparse
-import json
 import os
 import subprocess
 import sys
 import tempfile
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REFERENCE_FILE = os.path.join(REPO, "tests", "data", "same_numbers_reference.txt")
 SHORT_OFF_POLICY = ["--total-timesteps", "1000", "--learning-starts", "500", "--batch-size", "64"]
 SHORT_ON_POLICY = ["--total-timesteps", "1024", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2"]
 EVAL = ["--eval-frequency", "500", "--eval-episodes", "1"]
@@ -32,8 +34,34 @@ RUNS = {
     "rnd": SHORT_ON_POLICY,
     "ebd": SHORT_ON_POLICY,
 }
-PINNED = {"MKL_CBWR": "AVX2", "ATEN_CPU_CAPABILITY": "avx2", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}  # a reduction split over threads may sum in another order
 NOT_COMPARED = {"charts/SPS"}  # wall-clock speed
+
+
+class NoReference(Exception):
+    """The reference's scripts cannot be had here (no git, a shallow clone without the commit)."""
+
+
+def reference_commit() -> str:
+    """The reference commit: the first word of REFERENCE_FILE that is not in a comment."""
+    with open(REFERENCE_FILE) as f:
+        return next(line.split()[0] for line in f if line.strip() and not line.startswith("#"))
+
+
+def checkout(ref: str, into: str) -> str:
+    """A folder with the scripts of `ref`: a folder as it is, or a commit of this clone, whose Python files are
+    written into `into`."""
+    if os.path.isdir(ref):
+        return os.path.abspath(ref)
+    try:
+        found = subprocess.run(["git", "-C", REPO, "cat-file", "-e", f"{ref}^{{commit}}"], capture_output=True)
+    except FileNotFoundError:
+        raise NoReference(f"{ref}: no git on PATH to take that commit's scripts from") from None
+    if found.returncode != 0:
+        raise NoReference(f"{ref}: no such commit in this clone (a shallow clone? `git fetch --unshallow` brings it)")
+    archive = subprocess.run(["git", "-C", REPO, "archive", ref], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", into, "--wildcards", "*.py"], input=archive, check=True)
+    return into
 
 
 def scalars(run_dir: str) -> dict:
@@ -49,7 +77,7 @@ def run(script: str, scripts_dir: str = REPO) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         flags = ["--env-id", "Pendulum-v1", "--seed", "1", *RUNS[script], *EVAL, "--run-name", "run", "--no-cuda"]
         command = [sys.executable, os.path.join(scripts_dir, f"{script}_continuous_action.py"), *flags]
-        env = {**os.environ, **PINNED, "PYTHONPATH": scripts_dir}
+        env = {**os.environ, **ONE_THREAD, "PYTHONPATH": scripts_dir}
         result = subprocess.run(command, cwd=tmp, env=env, capture_output=True, text=True)
         if result.returncode != 0:
             raise RuntimeError(f"{' '.join(command)} failed:\n{result.stderr[-3000:]}")
@@ -61,7 +89,7 @@ def differences(expected: dict, got: dict) -> list:
     found = []
     for tag in sorted(set(expected) | set(got)):
         if tag not in got or tag not in expected:
-            found.append(f"{tag}: only in the {'recorded' if tag in expected else 'new'} run")
+            found.append(f"{tag}: only in the {'reference' if tag in expected else 'new'} run")
             continue
         for (step, old), (new_step, new) in zip(expected[tag], got[tag]):
             if step != new_step or old != new:
@@ -73,32 +101,27 @@ def differences(expected: dict, got: dict) -> list:
     return found
 
 
+def compare(script: str, reference_dir: str) -> list:
+    """The differences between the reference's run of `script` and today's, both run here and now."""
+    return differences(run(script, reference_dir), run(script))
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    what = parser.add_mutually_exclusive_group(required=True)
-    what.add_argument("--record", metavar="JSON", help="write the scripts' values here")
-    what.add_argument("--check", metavar="JSON", help="compare the scripts' values with those recorded here")
-    what.add_argument("--against", metavar="CHECKOUT", help="run this checkout's scripts too and compare")
+    parser.add_argument("--against", metavar="COMMIT_OR_CHECKOUT", help="default: the reference commit")
     parser.add_argument("--scripts", nargs="+", default=list(RUNS), choices=list(RUNS))
     args = parser.parse_args(argv)
-    if args.record:
-        recorded = {script: {"flags": RUNS[script], "scalars": run(script)} for script in args.scripts}
-        os.makedirs(os.path.dirname(os.path.abspath(args.record)), exist_ok=True)
-        with open(args.record, "w") as f:
-            json.dump(recorded, f, indent=0)
-        print(f"{len(recorded)} scripts' values -> {args.record}")
-        return
-    if args.check:
-        with open(args.check) as f:
-            recorded = json.load(f)
-        expected = {script: recorded[script]["scalars"] for script in args.scripts}
-    else:
-        expected = {script: run(script, os.path.abspath(args.against)) for script in args.scripts}
-    failed = False
-    for script in args.scripts:
-        found = differences(expected[script], run(script))
-        failed |= bool(found)
-        print(f"{script}: " + ("the same numbers" if not found else "differs: " + "; ".join(found)))
+    ref = args.against or reference_commit()
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            reference_dir = checkout(ref, tmp)
+        except NoReference as e:
+            sys.exit(f"error: {e}")
+        failed = False
+        for script in args.scripts:
+            found = compare(script, reference_dir)
+            failed |= bool(found)
+            print(f"{script}: " + ("the same numbers as " + ref if not found else "differs: " + "; ".join(found)))
     sys.exit(1 if failed else 0)
 
 
