@@ -193,37 +193,3 @@ def test_actor_update_uses_q1_and_never_touches_the_critic():
     for _ in range(30):
         td3.optimize(td3.policy_loss(batch, actor, qf), "actor_loss", actor_optimizer)
     assert qf(batch.observations, actor(batch.observations))[0].mean().item() > q1_before  # ascends Q1
-
-
-def test_optimize_steps_on_this_losss_gradient_alone_and_refuses_a_non_finite_loss():
-    """optimize: one step on the gradient of this loss only (the previous step's left in .grad is cleared first);
-    a NaN or infinite loss stops it before any weight changes."""
-    actor, qf, _, _, _, _, batch = make_agent()
-    optimizer = torch.optim.SGD(actor.parameters(), lr=0.1)
-    td3.optimize(td3.policy_loss(batch, actor, qf), "actor_loss", optimizer)  # leaves its gradient in .grad
-    before = snapshot(actor)
-    loss = td3.policy_loss(batch, actor, qf)
-    grads = torch.autograd.grad(loss, list(actor.parameters()), retain_graph=True)
-    td3.optimize(loss, "actor_loss", optimizer)
-    for a, g, b in zip(before, grads, actor.parameters()):
-        torch.testing.assert_close(b, a - 0.1 * g)
-    after = snapshot(actor)
-    for bad in (float("nan"), float("inf")):
-        with pytest.raises(NonFiniteError, match="actor_loss"):
-            td3.optimize(td3.policy_loss(batch, actor, qf) * bad, "actor_loss", optimizer)
-        assert all(torch.equal(a, b) for a, b in zip(after, actor.parameters()))
-
-
-def test_soft_update_is_polyak_averaging():
-    source, target = td3.QEnsemble(OBS_DIM, ACTION_DIM), td3.QEnsemble(OBS_DIM, ACTION_DIM)
-    with torch.no_grad():
-        for p in source.parameters():
-            p.fill_(1.0)
-        for p in target.parameters():
-            p.fill_(0.0)
-    for _ in range(3):
-        td3.soft_update([target], [source], tau=0.1)
-    for p in target.parameters():
-        torch.testing.assert_close(p, torch.full_like(p, 1 - 0.9**3))
-    for p in source.parameters():
-        torch.testing.assert_close(p, torch.ones_like(p))
