@@ -86,6 +86,25 @@ group_names() {  # array algo env seed|first-last total extra...
   for ((s = ${seed%-*}; s <= ${seed#*-}; s++)); do group_out+=("$(run_name "$algo" "$env" "$s" "$total" "$@")"); done
 }
 
+# The training command of one process (what run_one runs and --dry-run prints): its script, seed, steps, run name,
+# checkpoints and the flags passed on, resuming from its first run's checkpoint if it has one.
+train_command() {  # array algo env seed|first-last total checkpoint_frequency [--] extra...
+  local -n command_out=$1
+  local algo=$2 env=$3 seed=$4 total=$5 ckpt=$6 names=(); shift 6
+  [[ ${1:-} == "--" ]] && shift
+  group_names names "$algo" "$env" "$seed" "$total" "$@"
+  local steps=() seed_flags=() resume=() template=${names[0]}
+  [[ $total != default ]] && steps=(--total-timesteps "$total")
+  # several seeds: --num-seeds, and the run name with {seed} where each seed's number goes
+  if ((${#names[@]} > 1)); then
+    seed_flags=(--num-seeds "${#names[@]}")
+    template="$(run_name "$algo" "$env" "{seed}" "$total" "$@")"
+  fi
+  [[ -f runs/${names[0]}/checkpoint.pt ]] && resume=(--resume "runs/${names[0]}")
+  command_out=("${PYTHON:-python}" "$REPO/${algo}_continuous_action.py" --env-id "$env" --seed "${seed%-*}" "${seed_flags[@]}"
+    "${steps[@]}" --run-name "$template" --checkpoint-frequency "$ckpt" "$@" "${resume[@]}")
+}
+
 # One run, or one process training the consecutive seeds FIRST-LAST (--seeds-per-process), skipped if finished,
 # resumed if it has a checkpoint (a group: its first run's, which names the others). Prints one word: done,
 # skipped, busy, failed.
@@ -113,19 +132,8 @@ run_one() {  # algo env seed|first-last total checkpoint_frequency [-- extra...]
     echo failed
     return 0
   fi
-  local resume=()
-  if [[ -f $dir/checkpoint.pt ]]; then
-    resume=(--resume "$dir")
-  else
+  if [[ ! -f $dir/checkpoint.pt ]]; then
     for name in "${names[@]}"; do rm -rf "runs/$name"; done  # a run that died before its first checkpoint starts again
-  fi
-  local steps=()
-  [[ $total != default ]] && steps=(--total-timesteps "$total")
-  # several seeds: --num-seeds, and the run name with {seed} where each seed's number goes
-  local seed_flags=() template=${names[0]}
-  if ((${#names[@]} > 1)); then
-    seed_flags=(--num-seeds "${#names[@]}")
-    template="$(run_name "$algo" "$env" "{seed}" "$total" "$@")"
   fi
   # which float32 matmul kernels this part of the run uses (tools/mkl_avx512.sh preloads its library), for
   # results/mkl_kernels.csv; a resumed run appends a second line
@@ -135,9 +143,9 @@ run_one() {  # algo env seed|first-last total checkpoint_frequency [-- extra...]
     echo "float32 kernels: $kernels" >>"logs/$name.log"
     if ((${#names[@]} > 1)); then echo "seeds per process: ${#names[@]} (output in $log)" >>"logs/$name.log"; fi
   done
-  if OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 "${PYTHON:-python}" "$REPO/${algo}_continuous_action.py" \
-      --env-id "$env" --seed "${seed%-*}" "${seed_flags[@]}" "${steps[@]}" --run-name "$template" --checkpoint-frequency "$ckpt" \
-      "$@" "${resume[@]}" >>"$log" 2>&1; then
+  local command=()
+  train_command command "$algo" "$env" "$seed" "$total" "$ckpt" "$@"
+  if OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 "${command[@]}" >>"$log" 2>&1; then
     for name in "${names[@]}"; do touch "runs/$name/DONE"; done
     echo done
   else
@@ -309,8 +317,18 @@ eval \"bash $(printf '%q' "$REPO/benchmark.sh") --run-one \$args\""
   exit 0
 fi
 
-if ((dry_run)); then
-  for args in "${runs[@]}"; do echo "bash $REPO/benchmark.sh --run-one $args"; done
+if ((dry_run)); then  # each process's training command, as run_one would run it now; a finished run as a comment
+  for name in "${skipped_before[@]}"; do echo "# finished: $name"; done
+  for args in "${runs[@]}"; do
+    eval "set -- $args"
+    group_names names "$1" "$2" "$3" "$4" "${@:7}"
+    left=()
+    for name in "${names[@]}"; do finished "$name" && echo "# finished: $name" || left+=("$name"); done
+    ((${#left[@]})) || continue
+    train_command command "$@"
+    line=$(printf '%q ' "${command[@]}")
+    echo "${line% }"
+  done
   exit 0
 fi
 

@@ -1,7 +1,9 @@
-"""benchmark.sh: the sweep's commands, parallel runs, skip and resume, failures, and a real Slurm."""
+"""benchmark.sh: the sweep's commands (through --dry-run, in the fast tier), parallel runs, skip and resume, failures,
+and a real Slurm (these train or sweep: marked slow)."""
 
 import fcntl
 import os
+import shlex
 import shutil
 import socket
 import subprocess
@@ -11,8 +13,6 @@ import time
 import pytest
 
 from conftest import REPO
-
-pytestmark = pytest.mark.slow  # every test here trains or sweeps
 
 BENCHMARK = os.path.join(REPO, "benchmark.sh")
 TINY = [
@@ -58,25 +58,71 @@ def test_help_lists_the_flags(tmp_path):
         assert flag in result.stdout
 
 
-def test_dry_run_prints_one_command_per_run_with_deterministic_names(tmp_path):
-    result = bench(
-        "--algos",
-        "td3",
-        "oparl",
-        "--env-ids",
-        "dm_control/cartpole-balance-v0",
-        "--seeds",
-        "1",
-        "2",
-        "--dry-run",
-        *TINY,
-        cwd=tmp_path,
-    )
+def planned(stdout: str) -> list:
+    """--dry-run's lines as (script, --seed, --num-seeds, --run-name, the flags after --checkpoint-frequency N) per
+    process, and ("finished", name) per run that counts as finished."""
+    found = []
+    for line in stdout.splitlines():
+        if line.startswith("# finished: "):
+            found.append(("finished", line.removeprefix("# finished: ")))
+            continue
+        words = shlex.split(line)
+        value = lambda flag, default=None: words[words.index(flag) + 1] if flag in words else default  # noqa: E731
+        script = os.path.basename(words[1]).removesuffix("_continuous_action.py")
+        rest = words[words.index("--checkpoint-frequency") + 2 :]
+        found.append((script, int(value("--seed")), int(value("--num-seeds", 1)), value("--run-name"), rest))
+    return found
+
+
+def test_dry_run_prints_each_runs_training_command_with_its_own_seed_and_name(tmp_path):
+    flags = ["--algos", "td3", "oparl", "--env-ids", "dm_control/cartpole-balance-v0", "Pendulum-v1", "--seeds", "1", "2"]
+    result = bench(*flags, "3", "--dry-run", *TINY, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.strip().splitlines()
-    assert len(lines) == 4 and all("--run-one" in line for line in lines)
-    assert "--run-one oparl dm_control/cartpole-balance-v0 2 300 10000 -- --learning-starts 200" in lines[3]
+    assert all(line.split()[0] == sys.executable and " --total-timesteps 300 " in line for line in lines)
+    tiny = ["--learning-starts", "200", "--batch-size", "32", "--eval-frequency", "300", "--eval-episodes", "1"]
+    expected = [
+        (
+            algo,
+            seed,
+            1,
+            f"{env.replace('/', '-')}__{algo}__{seed}__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1",
+            tiny,
+        )
+        for env in ("dm_control/cartpole-balance-v0", "Pendulum-v1")
+        for seed in (1, 2, 3)
+        for algo in ("td3", "oparl")
+    ]
+    assert planned(result.stdout) == expected
+    assert [line.split()[line.split().index("--env-id") + 1] for line in lines] == 6 * [
+        "dm_control/cartpole-balance-v0"
+    ] + 6 * ["Pendulum-v1"]
     assert not os.path.exists(tmp_path / "runs")
+
+
+def test_dry_run_leaves_out_finished_runs_and_resumes_a_started_one(tmp_path):
+    """A run marked DONE or named in --skip-listed's file is a '# finished' line, not a command; one with a checkpoint
+    is resumed from it; with --seeds-per-process, the finished seeds leave the groups."""
+    name = lambda seed: f"Pendulum-v1__td3__{seed}__300"  # noqa: E731
+    listed = tmp_path / "finished_runs.txt"
+    listed.write_text(name(2) + "\n")
+    (tmp_path / "runs" / name(3)).mkdir(parents=True)
+    (tmp_path / "runs" / name(3) / "DONE").touch()
+    (tmp_path / "runs" / name(4)).mkdir(parents=True)
+    (tmp_path / "runs" / name(4) / "checkpoint.pt").touch()
+    flags = ["--algos", "td3", "--env-ids", "Pendulum-v1", "--seeds", "1", "2", "3", "4", "5", *TINY[:2], "--dry-run"]
+    result = bench(*flags, "--skip-listed", str(listed), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert planned(result.stdout) == [
+        ("td3", 1, 1, name(1), []),
+        ("finished", name(2)),
+        ("finished", name(3)),
+        ("td3", 4, 1, name(4), ["--resume", f"runs/{name(4)}"]),
+        ("td3", 5, 1, name(5), []),
+    ]
+    assert [p[:3] for p in planned(bench(*flags, cwd=tmp_path).stdout)][1] == ("td3", 2, 1)  # not listed: it runs
+    grouped = planned(bench(*flags, "--skip-listed", str(listed), "--seeds-per-process", "5", cwd=tmp_path).stdout)
+    assert [p[:3] for p in grouped] == [("finished", name(2)), ("finished", name(3)), ("td3", 1, 1), ("td3", 4, 2)]
 
 
 def test_defaults_are_the_papers_tasks_and_ten_seeds(tmp_path):
@@ -105,6 +151,7 @@ def test_bad_flags_get_one_line(flags, message, tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_sweep_runs_in_parallel_then_skips_finished_runs(tmp_path):
     flags = ["--algos", "td3", "sac", "--env-ids", "Pendulum-v1", "--seeds", "1", "--workers", "2", *TINY]
     first = bench(*flags, cwd=tmp_path)
@@ -124,6 +171,7 @@ def test_sweep_runs_in_parallel_then_skips_finished_runs(tmp_path):
     assert "summary: 0 done, 2 skipped (finished before), 0 failed" in second.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("flock") is None, reason="flock (util-linux) is not installed: runs are not locked")
 def test_a_run_another_sweep_holds_is_left_alone(tmp_path):
     flags = ["--algos", "td3", "--env-ids", "Pendulum-v1", "--seeds", "1", *TINY]
@@ -140,6 +188,7 @@ def test_a_run_another_sweep_holds_is_left_alone(tmp_path):
     assert "summary: 1 done, 0 skipped (finished before), 0 failed" in free.stdout, free.stdout + free.stderr
 
 
+@pytest.mark.slow
 def test_unfinished_run_resumes_from_its_checkpoint(tmp_path):
     flags = [
         "--algos",
@@ -202,6 +251,7 @@ def test_unfinished_run_resumes_from_its_checkpoint(tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_a_failing_run_does_not_stop_the_others_and_fails_the_sweep(tmp_path):
     result = bench(
         "--algos",
@@ -321,6 +371,7 @@ def slurm(tmp_path):
             pass
 
 
+@pytest.mark.slow
 def test_slurm_array_runs_every_run_of_the_sweep(slurm, tmp_path):
     work = tmp_path / "work"
     work.mkdir()
@@ -361,6 +412,7 @@ def test_slurm_array_runs_every_run_of_the_sweep(slurm, tmp_path):
     assert "#SBATCH --array=0-1" in text and "#SBATCH --partition=debug" in text and "#SBATCH --job-name=tiny-sweep" in text
 
 
+@pytest.mark.slow
 def test_runs_listed_as_finished_are_skipped(tmp_path):
     listed = tmp_path / "finished_runs.txt"
     listed.write_text("Pendulum-v1__td3__1__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1\n")
@@ -426,20 +478,17 @@ def test_seeds_per_process_groups_consecutive_seeds_and_starts_a_group_at_a_gap(
     flags = ["--algos", "td3", "oparl", "--env-ids", "Pendulum-v1", "--seeds", "1", "2", "3", "5", *TINY[:2]]
     result = bench(*flags, "--seeds-per-process", "4", "--dry-run", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.splitlines() == [
-        f"bash {BENCHMARK} --run-one td3 Pendulum-v1 1-3 300 10000 -- ",
-        f"bash {BENCHMARK} --run-one oparl Pendulum-v1 1-3 300 10000 -- ",
-        f"bash {BENCHMARK} --run-one td3 Pendulum-v1 5 300 10000 -- ",
-        f"bash {BENCHMARK} --run-one oparl Pendulum-v1 5 300 10000 -- ",
-    ]
+    assert [p[:3] for p in planned(result.stdout)] == [("td3", 1, 3), ("oparl", 1, 3), ("td3", 5, 1), ("oparl", 5, 1)]
+    assert planned(result.stdout)[0][3] == "Pendulum-v1__td3__{seed}__300"
     five = ["--algos", "td3", "--env-ids", "Pendulum-v1", "--seeds", "1", "2", "3", "4", "5", "--seeds-per-process", "2"]
-    groups = [line.split()[5] for line in bench(*five, "--dry-run", cwd=tmp_path).stdout.splitlines()]
-    assert groups == ["1-2", "3-4", "5"]
+    groups = [p[1:3] for p in planned(bench(*five, "--dry-run", cwd=tmp_path).stdout)]
+    assert groups == [(1, 2), (3, 2), (5, 1)]
     job = bench(*five, "--dry-run", "--slurm", cwd=tmp_path).stdout  # one array task per group
     assert "#SBATCH --array=0-2" in job and "# run: td3 Pendulum-v1 3-4 default 10000 -- " in job
     assert not os.path.exists(tmp_path / "runs")
 
 
+@pytest.mark.slow
 def test_stopping_the_sweeps_first_process_lets_its_running_runs_finish_and_starts_no_more(fake):
     # docs/sweeps.md: kill only the `bash benchmark.sh` you started; each run's own shell writes its DONE
     sweep = subprocess.Popen(
@@ -460,6 +509,7 @@ def test_stopping_the_sweeps_first_process_lets_its_running_runs_finish_and_star
     assert stderr == ""  # nothing about the progress files the stopped sweep took with it
 
 
+@pytest.mark.slow
 def test_seeds_per_process_one_changes_nothing(fake, tmp_path):
     assert bench("--dry-run", cwd=tmp_path).stdout == bench("--dry-run", "--seeds-per-process", "1", cwd=tmp_path).stdout
     result = fake(*FAKE, "--seeds", "1", "2", "--seeds-per-process", "1")
@@ -472,6 +522,7 @@ def test_seeds_per_process_one_changes_nothing(fake, tmp_path):
         )
 
 
+@pytest.mark.slow
 def test_a_group_is_one_process_for_its_seeds(fake):
     result = fake(*FAKE, "--seeds", "1", "2", "3", "4", "--seeds-per-process", "3", "--workers", "1")
     assert "summary: 4 done, 0 skipped (finished before), 0 failed" in result.stdout, result.stdout + result.stderr
@@ -492,13 +543,14 @@ def test_a_group_is_one_process_for_its_seeds(fake):
     assert all((fake.work / "runs" / fake_name(seed) / "DONE").exists() for seed in (1, 2, 3, 4))
 
 
+@pytest.mark.slow
 def test_a_group_leaves_out_finished_runs(fake):
     (fake.work / "runs" / fake_name(2)).mkdir(parents=True)
     (fake.work / "runs" / fake_name(2) / "DONE").touch()
     listed = fake.work / "finished_runs.txt"
     listed.write_text(fake_name(5) + "\n")
     flags = [*FAKE, "--seeds", "1", "2", "3", "4", "5", "--seeds-per-process", "5", "--skip-listed", str(listed)]
-    assert [line.split()[5] for line in fake(*flags, "--dry-run").stdout.splitlines()] == ["1", "3-4"]
+    assert [p[1:3] for p in planned(fake(*flags, "--dry-run").stdout) if p[0] == "fake"] == [(1, 1), (3, 2)]
     result = fake(*flags)
     assert "summary: 3 done, 2 skipped (finished before), 0 failed" in result.stdout, result.stdout + result.stderr
     assert os.listdir(fake.work / "runs" / fake_name(2)) == ["DONE"] and not (fake.work / "runs" / fake_name(5)).exists()
@@ -507,6 +559,7 @@ def test_a_group_leaves_out_finished_runs(fake):
     assert nothing_left.returncode == 0 and "nothing to submit: the sweep's 2 runs are all finished" in nothing_left.stdout
 
 
+@pytest.mark.slow
 def test_a_group_resumes_from_its_first_runs_folder(fake):
     runs = fake.work / "runs"
     for seed in (1, 2, 4):  # 1-2 stopped with their checkpoints; 3-4 died before theirs (4's is another run's)
@@ -523,6 +576,7 @@ def test_a_group_resumes_from_its_first_runs_folder(fake):
     assert not (runs / fake_name(4) / "events").exists()  # a group that starts again starts every run afresh
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("flock") is None, reason="flock (util-linux) is not installed: runs are not locked")
 def test_a_group_is_busy_if_any_of_its_runs_is_and_fails_as_a_whole(fake):
     flags = [*FAKE, "--seeds", "1", "2", "3", "--seeds-per-process", "2"]
@@ -541,6 +595,7 @@ def test_a_group_is_busy_if_any_of_its_runs_is_and_fails_as_a_whole(fake):
         assert f"failed: {fake_name(seed)} (log: logs/{fake_name(1)}.log)" in failed.stdout
 
 
+@pytest.mark.slow
 def test_seeds_per_process_needs_a_script_with_num_seeds(fake):
     refused = fake(*FAKE[:1], "fake", "oneseed", *FAKE[2:], "--seeds", "1", "2", "--seeds-per-process", "2")
     assert refused.returncode == 2 and refused.stderr.strip().splitlines() == [
@@ -552,6 +607,7 @@ def test_seeds_per_process_needs_a_script_with_num_seeds(fake):
     assert redq.returncode == 2 and "redq_continuous_action.py trains one seed per process" in redq.stderr
 
 
+@pytest.mark.slow
 def test_a_real_group_trains_its_seeds_in_one_process(tmp_path):
     result = bench(
         "--algos", "td3", "--env-ids", "Pendulum-v1", "--seeds", "1", "2", "--seeds-per-process", "2", *TINY, cwd=tmp_path

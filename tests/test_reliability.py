@@ -163,6 +163,53 @@ def test_a_checkpoint_restores_the_next_draw_of_every_random_generator(env_id, t
     assert draws() == expected
 
 
+@pytest.mark.parametrize("num_seeds", [1, 2])
+def test_a_checkpoint_restores_every_optimizers_state_as_saved(num_seeds, tmp_path):
+    """Adam's step counts and moments and its hyperparameters, through each seed's checkpoint file and back into fresh
+    optimizers, equal the saved ones, and the next step then moves the weights exactly as the uninterrupted one does
+    (with two seeds, each seed's cut of the stacked state goes to its own file and comes back stacked)."""
+    from rl_utils import stack_seeds
+
+    env = make_env("Pendulum-v1", seed=3)
+    env.reset(seed=3)
+    seeds = list(range(1, num_seeds + 1))
+    args = load("td3").Args(env_id="Pendulum-v1", num_seeds=num_seeds)
+
+    def built():
+        (net,) = stack_seeds(
+            lambda: [torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.Tanh(), torch.nn.Linear(4, 1))], seeds, "cpu"
+        )
+        return {"net": net}, {"opt": torch.optim.Adam(net.parameters(), lr=1e-2, betas=(0.8, 0.95))}
+
+    def step(nets, opts):  # a loss of the parameters alone: it holds for stacked seeds as for one
+        loss = sum((p**3 - p).sum() for p in nets["net"].parameters())
+        opts["opt"].zero_grad()
+        loss.backward()
+        opts["opt"].step()
+
+    nets, opts = built()
+    for _ in range(3):
+        step(nets, opts)
+    run_dirs = [str(tmp_path / f"seed{k}") for k in seeds]
+    state = checkpoints.snapshot("td3_continuous_action.py", args, [env], 3, nets, opts, {})
+    for run_dir, seed_state in zip(run_dirs, checkpoints.split_seeds(state, nets, {}, [[] for _ in seeds], run_dirs)):
+        os.makedirs(run_dir)
+        checkpoints.write_checkpoint(os.path.join(run_dir, "checkpoint.pt"), seed_state)
+    loaded = [torch.load(os.path.join(d, "checkpoint.pt"), weights_only=True) for d in run_dirs]
+    fresh_nets, fresh_opts = built()
+    checkpoints.restore(checkpoints.join_seeds(loaded, fresh_nets, {}), [env], fresh_nets, fresh_opts, {})
+    saved, restored = opts["opt"].state_dict(), fresh_opts["opt"].state_dict()
+    assert restored["param_groups"] == saved["param_groups"]
+    assert saved["state"].keys() == restored["state"].keys() and len(saved["state"]) == 4
+    for i, param_state in saved["state"].items():
+        assert param_state["step"].item() == 3.0
+        for key, value in param_state.items():
+            assert torch.equal(restored["state"][i][key], value), (i, key)
+    step(nets, opts), step(fresh_nets, fresh_opts)
+    for a, b in zip(nets["net"].parameters(), fresh_nets["net"].parameters()):
+        assert torch.equal(a, b)
+
+
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory):
     """One short checkpointed run per script, made once per test process and shared by the tests that only
