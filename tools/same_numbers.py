@@ -1,5 +1,5 @@
 """Do the scripts still compute the same numbers as the reference commit? Each script trains a short run (seed 1,
-Pendulum-v1, about a thousand steps with learning), here and now, once with today's scripts and once with the
+Pendulum-v1, a few hundred steps with learning), here and now, once with today's scripts and once with the
 reference commit's, and every TensorBoard scalar both log but the speed is compared, bit for bit:
 
     python tools/same_numbers.py                          # against the reference commit (REFERENCE_FILE)
@@ -21,13 +21,13 @@ import tempfile
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REFERENCE_FILE = os.path.join(REPO, "tests", "data", "same_numbers_reference.txt")
-SHORT_OFF_POLICY = ["--total-timesteps", "1000", "--learning-starts", "500", "--batch-size", "64"]
-SHORT_ON_POLICY = ["--total-timesteps", "1024", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2"]
-EVAL = ["--eval-frequency", "500", "--eval-episodes", "1"]
+SHORT_OFF_POLICY = ["--total-timesteps", "600", "--learning-starts", "300", "--batch-size", "32"]
+SHORT_ON_POLICY = ["--total-timesteps", "512", "--num-steps", "128", "--num-minibatches", "4", "--update-epochs", "2"]
+EVAL = ["--eval-frequency", "300", "--eval-episodes", "1"]
 # each script's short run: its defaults, shorter, with its own mechanisms reached (OPARL's reset and candidates)
 RUNS = {
     "td3": SHORT_OFF_POLICY,
-    "oparl": [*SHORT_OFF_POLICY, "--reset-frequency", "200", "--num-candidates", "3"],
+    "oparl": [*SHORT_OFF_POLICY, "--reset-frequency", "100", "--num-candidates", "3"],
     "sac": SHORT_OFF_POLICY,
     "redq": [*SHORT_OFF_POLICY, "--utd-ratio", "2", "--num-q", "4"],
     "ppo": SHORT_ON_POLICY,
