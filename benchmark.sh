@@ -31,6 +31,12 @@ Usage: bash benchmark.sh [flags] [-- flags passed to every script]
   --checkpoint-frequency N  checkpoint every N steps, so an interrupted run resumes (default: 10000)
   --skip-listed FILE        runs named in FILE (one name a line, e.g. results/finished_runs.txt) count as
                             finished: how a sweep continues on a machine that lacks their runs/ folders
+  --gpu                     the sweep on this machine's one CUDA GPU, at the shape measured fastest: up to 16 seeds
+                            a process (unless --seeds-per-process is given; 1 for a script without --num-seeds), the
+                            processes sharing the GPU under MPS (started here if it is not running; it stays on),
+                            each with --cudagraphs where its script takes it (not part of the run names: a run
+                            is the same run on a CPU); refused in one line, before anything starts, when the
+                            processes that run at once would not fit the GPU's free memory (tools/gpu_fit.py)
   --dry-run                 print the commands (or the Slurm job script) and run nothing
   --slurm                   submit the sweep as one Slurm job array, one run (one process) per array task
   --slurm-partition P       sbatch --partition
@@ -101,8 +107,10 @@ train_command() {  # array algo env seed|first-last total checkpoint_frequency [
     template="$(run_name "$algo" "$env" "{seed}" "$total" "$@")"
   fi
   [[ -f runs/${names[0]}/checkpoint.pt ]] && resume=(--resume "runs/${names[0]}")
+  local gpu_flags=()  # --gpu: recorded updates, where the script takes them; a run's name is the same on a CPU
+  [[ -n ${GPU_SWEEP:-} ]] && grep -q '^ *cudagraphs: bool' "$REPO/${algo}_continuous_action.py" && gpu_flags=(--cudagraphs)
   command_out=("${PYTHON:-python}" "$REPO/${algo}_continuous_action.py" --env-id "$env" --seed "${seed%-*}" "${seed_flags[@]}"
-    "${steps[@]}" --run-name "$template" --checkpoint-frequency "$ckpt" "$@" "${resume[@]}")
+    "${steps[@]}" --run-name "$template" --checkpoint-frequency "$ckpt" "$@" "${gpu_flags[@]}" "${resume[@]}")
 }
 
 # One run, or one process training the consecutive seeds FIRST-LAST (--seeds-per-process), skipped if finished,
@@ -162,7 +170,8 @@ fi
 algos=(oparl td3 sac)
 env_ids=("${PAPER_DMC[@]}")
 seeds=(1 2 3 4 5 6 7 8 9 10)
-seeds_per_process=1
+seeds_per_process=1 seeds_per_process_given=0
+gpu=0
 total=default
 workers=$(nproc)
 checkpoint_frequency=10000
@@ -188,7 +197,7 @@ while (($#)); do
     --algos) shift; values algos "$@"; shift $(count_values "$@") ;;
     --env-ids) shift; values env_ids "$@"; shift $(count_values "$@") ;;
     --seeds) shift; values seeds "$@"; shift $(count_values "$@") ;;
-    --seeds-per-process) need_int "$flag" "${2:-}"; seeds_per_process=$2; shift 2 ;;
+    --seeds-per-process) need_int "$flag" "${2:-}"; seeds_per_process=$2; seeds_per_process_given=1; shift 2 ;;
     --suite)
       case ${2:-} in
         dmc) env_ids=("${PAPER_DMC[@]}") ;;
@@ -203,6 +212,7 @@ while (($#)); do
       [[ -f ${2:-} ]] || die "--skip-listed: no such file '${2:-}'"
       SKIP_LISTED="$(cd "$(dirname "$2")" && pwd)/$(basename "$2")"; export SKIP_LISTED; shift 2 ;;
     --dry-run) dry_run=1; shift ;;
+    --gpu) gpu=1; shift ;;
     --slurm) slurm=1; shift ;;
     --slurm-partition) slurm_partition=${2:?--slurm-partition needs a value}; shift 2 ;;
     --slurm-time) slurm_time=${2:?--slurm-time needs a value}; shift 2 ;;
@@ -217,6 +227,16 @@ for algo in "${algos[@]}"; do
   [[ -f $REPO/${algo}_continuous_action.py ]] || die "unknown algorithm '$algo': no $REPO/${algo}_continuous_action.py"
 done
 for seed in "${seeds[@]}"; do [[ $seed =~ ^[0-9]+$ ]] || die "seeds must be non-negative integers, got '$seed'"; done
+if ((gpu)); then
+  export GPU_SWEEP=1  # train_command adds --cudagraphs where a script takes it
+  if ((!seeds_per_process_given)); then
+    seeds_per_process=16
+    for algo in "${algos[@]}"; do  # every script of the sweep must train many seeds a process, else one a process
+      grep -q '^ *num_seeds: int' "$REPO/${algo}_continuous_action.py" &&
+        ! grep -q '(args.num_seeds == 1, "' "$REPO/${algo}_continuous_action.py" || seeds_per_process=1
+    done
+  fi
+fi
 if ((seeds_per_process > 1)); then
   for algo in "${algos[@]}"; do
     grep -q '^ *num_seeds: int' "$REPO/${algo}_continuous_action.py" ||
@@ -317,7 +337,9 @@ eval \"bash $(printf '%q' "$REPO/benchmark.sh") --run-one \$args\""
   exit 0
 fi
 
-if ((dry_run)); then  # each process's training command, as run_one would run it now; a finished run as a comment
+# each process's training command, as run_one would run it now; a finished run as a comment
+plan() {
+  local args names left name line command
   for name in "${skipped_before[@]}"; do echo "# finished: $name"; done
   for args in "${runs[@]}"; do
     eval "set -- $args"
@@ -329,7 +351,17 @@ if ((dry_run)); then  # each process's training command, as run_one would run it
     line=$(printf '%q ' "${command[@]}")
     echo "${line% }"
   done
+}
+
+if ((gpu)); then  # the processes that run at once must fit the GPU's free memory
+  plan | "$PYTHON" "$REPO/tools/gpu_fit.py" --workers "$workers" >&2 || exit 2
+fi
+if ((dry_run)); then
+  plan
   exit 0
+fi
+if ((gpu)) && command -v nvidia-cuda-mps-control >/dev/null && ! echo get_server_list | nvidia-cuda-mps-control >/dev/null 2>&1; then
+  nvidia-cuda-mps-control -d && echo "MPS started (it stays on: 'echo quit | nvidia-cuda-mps-control' stops it)"
 fi
 
 mkdir -p logs

@@ -2,6 +2,7 @@
 and a real Slurm (these train or sweep: marked slow)."""
 
 import fcntl
+import io
 import os
 import shlex
 import shutil
@@ -81,14 +82,9 @@ def test_dry_run_prints_each_runs_training_command_with_its_own_seed_and_name(tm
     lines = result.stdout.strip().splitlines()
     assert all(line.split()[0] == sys.executable and " --total-timesteps 300 " in line for line in lines)
     tiny = ["--learning-starts", "200", "--batch-size", "32", "--eval-frequency", "300", "--eval-episodes", "1"]
+    suffix = "learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1"
     expected = [
-        (
-            algo,
-            seed,
-            1,
-            f"{env.replace('/', '-')}__{algo}__{seed}__300__learning-starts_200_batch-size_32_eval-frequency_300_eval-episodes_1",
-            tiny,
-        )
+        (algo, seed, 1, f"{env.replace('/', '-')}__{algo}__{seed}__300__{suffix}", tiny)
         for env in ("dm_control/cartpole-balance-v0", "Pendulum-v1")
         for seed in (1, 2, 3)
         for algo in ("td3", "oparl")
@@ -620,3 +616,68 @@ def test_a_real_group_trains_its_seeds_in_one_process(tmp_path):
     assert (tmp_path / "runs" / first / "DONE").exists() and (tmp_path / "runs" / second / "DONE").exists()
     assert "seed 2 step 300" in (tmp_path / "logs" / f"{first}.log").read_text()
     assert f"seeds per process: 2 (output in logs/{first}.log)" in (tmp_path / "logs" / f"{second}.log").read_text()
+
+
+# --- --gpu: the sweep on one GPU ---------------------------------------------------------------------------------
+
+
+def fake_gpu(tmp_path, free_mib) -> dict:
+    """An nvidia-smi that reports `free_mib` MiB free, first on PATH."""
+    bin_dir = tmp_path / "fake_bin"
+    bin_dir.mkdir(exist_ok=True)
+    (bin_dir / "nvidia-smi").write_text(f"#!/bin/sh\necho {free_mib}\n")
+    (bin_dir / "nvidia-smi").chmod(0o755)
+    return {"PATH": f"{bin_dir}{os.pathsep}{os.path.dirname(sys.executable)}{os.pathsep}{os.environ['PATH']}"}
+
+
+GPU_SWEEP = ["--gpu", "--algos", "td3", "oparl", "--env-ids", "Pendulum-v1", "--seeds", "1", "2", "3", "--workers", "16"]
+
+
+def test_gpu_sweep_groups_the_seeds_records_its_updates_and_keeps_the_run_names(tmp_path):
+    """--gpu: the seeds of a task and script in one process (up to 16), --cudagraphs on each, the run names a CPU
+    sweep gives them; the memory estimate said before anything starts."""
+    result = bench(*GPU_SWEEP, "--total-timesteps", "1000000", "--dry-run", cwd=tmp_path, env=fake_gpu(tmp_path, 81000))
+    assert result.returncode == 0, result.stderr
+    assert [p[:4] for p in planned(result.stdout)] == [
+        ("td3", 1, 3, "Pendulum-v1__td3__{seed}__1000000"),
+        ("oparl", 1, 3, "Pendulum-v1__oparl__{seed}__1000000"),
+    ]
+    assert all(p[4] == ["--cudagraphs"] for p in planned(result.stdout))
+    assert result.stderr.startswith("gpu_fit: 2 process(es) at once need about ")
+    assert "the GPU has 79.1 GiB free" in result.stderr
+    mixed = bench(*GPU_SWEEP[:3], "redq", *GPU_SWEEP[4:], "--dry-run", cwd=tmp_path, env=fake_gpu(tmp_path, 81000))
+    assert [p[:3] for p in planned(mixed.stdout)][:2] == [("td3", 1, 1), ("redq", 1, 1)]  # REDQ trains one seed a process
+
+
+def test_gpu_sweep_that_would_not_fit_is_refused_in_one_line_before_it_starts(tmp_path):
+    result = bench(*GPU_SWEEP, "--total-timesteps", "1000000", cwd=tmp_path, env=fake_gpu(tmp_path, 2000))
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.strip().count("\n") == 0 and result.stderr.startswith("error: 2 process(es) at once need about")
+    assert "the GPU has 2.0 GiB free: run fewer at once (--workers) or fewer seeds a process (--seeds-per-process)" in (
+        result.stderr
+    )
+    assert not os.path.exists(tmp_path / "runs") and not os.path.exists(tmp_path / "logs")
+
+
+def test_gpu_fit_adds_each_process_context_buffers_and_networks(monkeypatch, capsys):
+    """The arithmetic: a process is its CUDA context plus, per seed, its replay buffer (rows of 2 obs + action + 2
+    floats) and its networks; the `--workers` largest run at once."""
+    sys.path.insert(0, os.path.join(REPO, "tools"))
+    import gpu_fit
+
+    obs, act = gpu_fit.dims("Pendulum-v1")
+    assert (obs, act) == (3, 1)
+    command = [sys.executable, os.path.join(REPO, "td3_continuous_action.py"), "--env-id", "Pendulum-v1"]
+    three = [*command, "--seed", "1", "--num-seeds", "3", "--run-name", "r{seed}", "--total-timesteps", "200000"]
+    mib, _ = gpu_fit.process_mib(three)
+    assert mib == pytest.approx(gpu_fit.CONTEXT_MIB + 3 * (200000 * (2 * 3 + 1 + 2) * 4 / 2**20 + gpu_fit.NETWORKS_MIB))
+    one = [*command, "--buffer-size", "1000", "--total-timesteps", "200000"]  # rows: the smaller of the two
+    assert gpu_fit.process_mib(one)[0] == pytest.approx(gpu_fit.CONTEXT_MIB + 1000 * 9 * 4 / 2**20 + gpu_fit.NETWORKS_MIB)
+    lines = [shlex.join(three), shlex.join(one), shlex.join(one)]
+    need = mib + gpu_fit.process_mib(one)[0]  # the two largest of three, with --workers 2
+    monkeypatch.setattr(sys, "stdin", io.StringIO("\n".join(lines)))
+    gpu_fit.main(["--workers", "2", "--free-mib", str(need + 1)])
+    assert f"need about {need / 1024:,.1f} GiB" in capsys.readouterr().out
+    monkeypatch.setattr(sys, "stdin", io.StringIO("\n".join(lines)))
+    with pytest.raises(SystemExit, match="^error: 2 process"):
+        gpu_fit.main(["--workers", "2", "--free-mib", str(need - 1)])
