@@ -18,8 +18,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 import torch.optim as optim
 
-from rl_utils import Batch, CudaGraph, ReplayBuffer, Run, SeedEnvs, bf16_autocast, check_finite, evaluate
-from rl_utils import parse_args, per_seed, stack_seeds, to_device
+from rl_utils import Batch, CudaGraph, ReplayBuffer, Run, SeedEnvs, bf16_autocast, check_finite, evaluate, frozen
+from rl_utils import at_least, parse_args, per_seed, positive, stack_seeds, to_device, within
 
 
 @dataclass
@@ -41,7 +41,7 @@ class Args:
     capture_video: bool = False
     """whether to record videos of evaluation episodes into `videos/{run_name}` (headless: set MUJOCO_GL=egl)"""
     save_model: bool = False
-    """whether to save the actors and critics into the `runs/{run_name}` folder"""
+    """whether to save the actor and critics into the `runs/{run_name}` folder"""
     run_name: Optional[str] = None
     """the run folder under runs/, {seed} where the seed goes (default: {env_id}__{exp_name}__{seed}__{unix time})"""
     num_seeds: int = 1
@@ -89,7 +89,7 @@ class Args:
 
     # Evaluation (the metric the paper reports)
     eval_frequency: int = 5000
-    """evaluate the deterministic pessimistic actor every this many environment steps"""
+    """evaluate the deterministic actor every this many environment steps"""
     eval_episodes: int = 10
     """the number of episodes per evaluation"""
     bf16: bool = False
@@ -99,38 +99,33 @@ class Args:
 
 
 # ALGO LOGIC: initialize agent here:
-class QEnsemble(nn.Module):
-    """`num_q` critics, concat(obs, action) -> 256 -> 256 -> 1, each layer's weights stacked into one
-    [num_q, in, out] tensor so that one batched matmul evaluates every member."""
-
-    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 5, hidden: int = 256, style: str = "release"):
+class QNetwork(nn.Module):
+    def __init__(self, obs_dim: int, action_dim: int, style: str = "release"):
         super().__init__()
-        self.num_q = num_q
-        self.activation = F.silu if style == "release" else F.relu
+        self.fc1 = nn.Linear(obs_dim + action_dim, 256)
+        self.fc2 = nn.Linear(256, 256)
+        self.fc3 = nn.Linear(256, 1)
+        self.activation = {"release": F.silu, "td3": F.relu}[style]
+        if style == "release":  # the release's init: zero biases; weights normal, std 1/(2 sqrt(fan_in)), |w| <= 2
+            for layer in (self.fc1, self.fc2, self.fc3):
+                nn.init.trunc_normal_(layer.weight, std=0.5 * layer.in_features**-0.5)
+                nn.init.zeros_(layer.bias)
 
-        def init(fan_in, *shape, bias=False):
-            p = torch.zeros(num_q, *shape)
-            if style == "td3":  # the default init of nn.Linear, drawn independently per member
-                p.uniform_(-(fan_in**-0.5), fan_in**-0.5)
-            elif not bias:  # the release: zero biases; weights normal, std 1/(2 sqrt(fan_in)), cut at +-2 (~60 stds)
-                nn.init.trunc_normal_(p, std=0.5 * fan_in**-0.5)
-            return nn.Parameter(p)
+    def forward(self, x, a):
+        x = torch.cat([x, a], -1)
+        x = self.activation(self.fc1(x))
+        x = self.activation(self.fc2(x))
+        return self.fc3(x).squeeze(-1)
 
-        in_dim = obs_dim + action_dim
-        self.w1, self.b1 = init(in_dim, in_dim, hidden), init(in_dim, 1, hidden, bias=True)
-        self.w2, self.b2 = init(hidden, hidden, hidden), init(hidden, 1, hidden, bias=True)
-        self.w3, self.b3 = init(hidden, 1, hidden), init(hidden, 1, bias=True)  # the output layer, as rows
 
-    def forward(self, obs, actions, detach_params=False):
-        """Q-values [num_q, batch]. `detach_params` lets gradients reach the actions only, which is all an actor loss
-        needs."""
-        params = [self.w1, self.b1, self.w2, self.b2, self.w3, self.b3]
-        w1, b1, w2, b2, w3, b3 = [p.detach() for p in params] if detach_params else params
-        x = torch.cat([obs, actions], -1)
-        x = x.expand(len(w1), *x.shape).contiguous()  # every member sees the same batch
-        x = self.activation(torch.baddbmm(b1, x, w1))
-        x = self.activation(torch.baddbmm(b2, x, w2))
-        return (x * w3).sum(-1) + b3  # a dot product per member: cheaper than a matmul
+class QEnsemble(nn.ModuleList):
+    """num_q independent QNetworks (OPARL's ensemble: 5); called, every critic's Q-values [num_q, batch]."""
+
+    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 5, style: str = "release"):
+        super().__init__(QNetwork(obs_dim, action_dim, style) for _ in range(num_q))
+
+    def forward(self, obs, actions):
+        return torch.stack([qf(obs, actions) for qf in self])
 
 
 class Actor(nn.Module):
@@ -178,12 +173,12 @@ def critic_loss(batch: Batch, qf: QEnsemble, target_actor: Actor, qf_target: QEn
     return qf_loss, qf_a_values.detach()
 
 
-def policy_losses(batch: Batch, pessimistic_actor: Actor, optimistic_actor: Actor, qf: QEnsemble):
+def policy_losses(batch: Batch, actor: Actor, optimistic_actor: Actor, qf: QEnsemble):
     """The pessimistic actor ascends the min over the ensemble, the optimistic actor the max. Both
-    go through one ensemble pass; the critic's weights get no gradient."""
+    go through one ensemble pass."""
     obs = batch.observations
-    actions = torch.cat([pessimistic_actor(obs), optimistic_actor(obs)])
-    q_pessimistic, q_optimistic = qf(torch.cat([obs, obs]), actions, detach_params=True).chunk(2, dim=-1)
+    actions = torch.cat([actor(obs), optimistic_actor(obs)])
+    q_pessimistic, q_optimistic = qf(torch.cat([obs, obs]), actions).chunk(2, dim=-1)
     return -q_pessimistic.min(0).values.mean(), -q_optimistic.max(0).values.mean()
 
 
@@ -228,6 +223,24 @@ def optimize(loss: torch.Tensor, name: str, *optimizers):
         optimizer.step()
 
 
+def check_args(args: Args) -> list:
+    """The flags' valid values, as (holds, message) pairs: parse_args refuses a run that breaks one."""
+    return [
+        *positive(args, "learning_rate", "buffer_size", "batch_size", "policy_frequency", "eval_frequency", "eval_episodes"),
+        *at_least(args, 0, "policy_noise", "noise_clip", "exploration_noise", "learning_starts"),
+        *within(args, "[0, 1]", "gamma"),
+        *within(args, "(0, 1]", "tau"),
+        (
+            args.learning_starts >= args.batch_size,
+            f"--learning-starts ({args.learning_starts}) must be >= --batch-size ({args.batch_size})",
+        ),
+        *at_least(args, 2, "q_num", why=" (min and max need an ensemble)"),
+        *within(args, "[0, 1]", "optimistic_ratio"),
+        *at_least(args, 1, "num_candidates"),
+        *at_least(args, 0, "reset_frequency", why=" (0: never)"),
+    ]
+
+
 def main(args: Args):
     run = Run(args)  # the run folders, one per seed; with --resume, the checkpoints it continues from
     if run.finished:
@@ -247,20 +260,20 @@ def main(args: Args):
     obs_dim, action_dim = envs.obs_dim, envs.action_dim
 
     def networks():  # one seed's
-        pessimistic_actor = Actor(obs_dim, envs.action_space)
-        optimistic_actor = Actor(obs_dim, envs.action_space)  # trained without a target network
-        qf = QEnsemble(obs_dim, action_dim, args.q_num, style=args.critic_style)
-        target_pessimistic_actor = Actor(obs_dim, envs.action_space)
-        qf_target = QEnsemble(obs_dim, action_dim, args.q_num, style=args.critic_style)
-        target_pessimistic_actor.load_state_dict(pessimistic_actor.state_dict())
+        actor = Actor(obs_dim, envs.action_space)  # the pessimistic actor, pi_pes: the evaluated policy
+        optimistic_actor = Actor(obs_dim, envs.action_space)  # pi_opt, trained without a target network
+        qf = QEnsemble(obs_dim, action_dim, args.q_num, args.critic_style)
+        target_actor = Actor(obs_dim, envs.action_space)
+        qf_target = QEnsemble(obs_dim, action_dim, args.q_num, args.critic_style)
+        target_actor.load_state_dict(actor.state_dict())
         qf_target.load_state_dict(qf.state_dict())
-        return pessimistic_actor, optimistic_actor, qf, target_pessimistic_actor, qf_target
+        return actor, optimistic_actor, qf, target_actor, qf_target
 
-    pessimistic_actor, optimistic_actor, qf, target_pessimistic_actor, qf_target = stack_seeds(networks, run.seeds, device)
+    actor, optimistic_actor, qf, target_actor, qf_target = stack_seeds(networks, run.seeds, device)
     # fused Adam; capturable, so that --cudagraphs can record the optimizer step in its graph
     adam = functools.partial(optim.Adam, fused=True, capturable=args.cudagraphs)
     q_optimizer = adam(qf.parameters(), lr=args.learning_rate)
-    pessimistic_optimizer = adam(pessimistic_actor.parameters(), lr=args.learning_rate)
+    actor_optimizer = adam(actor.parameters(), lr=args.learning_rate)
     optimistic_optimizer = adam(optimistic_actor.parameters(), lr=args.learning_rate)
     rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), obs_dim, action_dim, len(run.seeds), device)
 
@@ -269,15 +282,16 @@ def main(args: Args):
         networks too. Returns what gets logged, by TensorBoard tag, one value per seed
         (per_seed's results carry a leading seeds dimension: losses [num_seeds], Q-values [num_seeds, num_q, batch])."""
         with bf16_autocast(device, args.bf16):
-            qf_loss, qf_a_values = per_seed(critic_loss)(batch, qf, target_pessimistic_actor, qf_target, args)
+            qf_loss, qf_a_values = per_seed(critic_loss)(batch, qf, target_actor, qf_target, args)
             optimize(qf_loss, "qf_loss", q_optimizer)
-            logs = {"losses/qf_values": qf_a_values.mean((-2, -1)), "losses/qf_loss": qf_loss.detach() / qf.num_q}
+            logs = {"losses/qf_values": qf_a_values.mean((-2, -1)), "losses/qf_loss": qf_loss.detach() / len(qf)}
             logs["charts/q_ensemble_std"] = qf_a_values.std(-2).mean(-1)
             if policy_step:
-                pessimistic_loss, optimistic_loss = per_seed(policy_losses)(batch, pessimistic_actor, optimistic_actor, qf)
-                # one backward pass: each actor gets only its own loss's gradient
-                optimize(pessimistic_loss + optimistic_loss, "actor_loss", pessimistic_optimizer, optimistic_optimizer)
-                soft_update([target_pessimistic_actor, qf_target], [pessimistic_actor, qf], args.tau)
+                with frozen(qf):  # the actor's loss computes no gradient for the critics (SpinningUp's freeze)
+                    pessimistic_loss, optimistic_loss = per_seed(policy_losses)(batch, actor, optimistic_actor, qf)
+                    # one backward pass: each actor gets only its own loss's gradient
+                    optimize(pessimistic_loss + optimistic_loss, "actor_loss", actor_optimizer, optimistic_optimizer)
+                soft_update([target_actor, qf_target], [actor, qf], args.tau)
                 logs["losses/pessimistic_actor_loss"] = pessimistic_loss.detach()
                 logs["losses/optimistic_actor_loss"] = optimistic_loss.detach()
         return logs
@@ -285,14 +299,14 @@ def main(args: Args):
     update = CudaGraph(update) if args.cudagraphs else update  # one graph per value of policy_step
 
     @torch.no_grad()
-    def policy(obs):  # the deterministic pessimistic actor: what the evaluations report
-        return per_seed(pessimistic_actor)(to_device(obs, device)).cpu().numpy()
+    def policy(obs):  # the deterministic actor: what the evaluations report
+        return per_seed(actor)(to_device(obs, device)).cpu().numpy()
 
-    nets = {"pessimistic_actor": pessimistic_actor, "optimistic_actor": optimistic_actor, "qf": qf}
-    nets.update(target_pessimistic_actor=target_pessimistic_actor, qf_target=qf_target)
-    optimizers = {"q_optimizer": q_optimizer, "pessimistic_optimizer": pessimistic_optimizer}
-    optimizers.update(optimistic_optimizer=optimistic_optimizer)
-    obs = run.start(envs, device, nets, optimizers, buffer=rb)  # what a checkpoint holds; restored on --resume
+    nets = {"actor": actor, "qf": qf, "target_actor": target_actor, "qf_target": qf_target}
+    optimizers = {"q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer}
+    nets["optimistic_actor"], optimizers["optimistic_optimizer"] = optimistic_actor, optimistic_optimizer
+    obs = run.start(envs, device, nets, optimizers, buffer=rb)  # restored on --resume, obs too
+    obs = envs.reset() if obs is None else obs  # a fresh run: each env reset with its seed
     for global_step in range(run.start_step, args.total_timesteps):
         if global_step % args.eval_frequency == 0:
             run.evaluate(global_step, evaluate(policy, eval_envs, eval_seeds, args.eval_episodes))
@@ -303,11 +317,11 @@ def main(args: Args):
         elif is_optimistic_step(global_step, args.optimistic_ratio):  # explore with the optimistic actor
             actions = per_seed(optimistic_action)(to_device(obs, device), optimistic_actor, qf, args).cpu().numpy()
         else:
-            actions = per_seed(noisy_action)(to_device(obs, device), pessimistic_actor, args.exploration_noise).cpu().numpy()
+            actions = per_seed(noisy_action)(to_device(obs, device), actor, args.exploration_noise).cpu().numpy()
 
         # execute the game and log data; a time-limit truncation is stored as not terminated, so its target bootstraps
         next_obs, rewards, terminations, truncations, infos = envs.step(actions)
-        rb.add(obs, actions, infos["real_next_obs"], rewards, terminations)
+        rb.add(obs, infos["real_next_obs"], actions, rewards, terminations)
         obs = next_obs
         run.log_episodes(infos, global_step)
 
@@ -317,7 +331,7 @@ def main(args: Args):
             # Parameter reset, pi_opt <- pi_pes: Section 4.3 and the release (Algorithm 1 writes the reverse).
             # The critic update does not involve pi_opt, so copying before it equals copying after it.
             if args.reset_frequency and iteration % args.reset_frequency == 0:
-                optimistic_actor.load_state_dict(pessimistic_actor.state_dict())  # in place: a graph sees it
+                optimistic_actor.load_state_dict(actor.state_dict())  # in place: a graph sees it; Adam's state stays
             policy_step = global_step % args.policy_frequency == 0
             with run.stop_on_nan(global_step):
                 logs = update(rb.sample(args.batch_size), policy_step)
@@ -328,11 +342,9 @@ def main(args: Args):
         run.end_step(global_step)  # training speed, progress bar, checkpoints
 
     run.evaluate(args.total_timesteps, evaluate(policy, eval_envs, eval_seeds, args.eval_episodes))
-    results = run.finish(
-        save={"actor": pessimistic_actor, "optimistic_actor": optimistic_actor, "qf": qf}, eval_envs=eval_envs
-    )
-    return {**nets, **optimizers, "update": update, "actor": pessimistic_actor, "rb": rb, **results}
+    results = run.finish(save={"actor": actor, "qf": qf, "optimistic_actor": optimistic_actor}, eval_envs=eval_envs)
+    return {**nets, **optimizers, "update": update, "rb": rb, **results}
 
 
 if __name__ == "__main__":
-    main(parse_args(Args))
+    main(parse_args(Args, check_args))

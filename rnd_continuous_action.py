@@ -16,6 +16,7 @@ import torch.optim as optim
 from torch.distributions.normal import Normal
 
 from rl_utils import Run, check_finite, evaluate, make_env, parse_args
+from rl_utils import at_least, positive, within
 
 
 @dataclass
@@ -385,6 +386,27 @@ def update_policy(rollout, advantages, returns, int_returns, rnd_obs, agent, rnd
     return {**stats, "clipfrac": torch.stack(clipfracs).mean()}
 
 
+def check_args(args: Args) -> list:
+    """The flags' valid values, as (holds, message) pairs: parse_args refuses a run that breaks one."""
+    return [
+        *positive(args, "learning_rate", "num_steps", "update_epochs", "clip_coef", "max_grad_norm"),
+        *positive(args, "eval_frequency", "eval_episodes"),
+        *at_least(args, 0, "ent_coef", "vf_coef"),
+        *within(args, "[0, 1]", "gamma", "gae_lambda", "int_gamma"),
+        *at_least(args, 0, "int_coef", "ext_coef", "num_iterations_obs_norm_init"),
+        *within(args, "(0, 1]", "update_proportion"),
+        (args.target_kl is None or args.target_kl > 0, f"--target-kl must be > 0, got {args.target_kl}"),
+        (
+            1 <= args.num_minibatches <= max(args.num_steps, 1),
+            f"--num-minibatches must be in [1, --num-steps ({args.num_steps})], got {args.num_minibatches}",
+        ),
+        (
+            args.total_timesteps >= args.num_steps,
+            f"--total-timesteps ({args.total_timesteps}) must be >= --num-steps ({args.num_steps}), one rollout",
+        ),
+    ]
+
+
 def main(args: Args):
     run = Run(args)  # the run folder; with --resume, the checkpoint it continues from
     if run.finished:
@@ -433,7 +455,7 @@ def main(args: Args):
         action = agent.actor_mean(torch.as_tensor(normalizer.observation(obs, update=False), device=device)).cpu().numpy()
         return action.clip(env.action_space.low, env.action_space.high)
 
-    writer = run.writers[0]
+    writer = run.logs.writers[0]
     for global_step in range(run.start_step, args.total_timesteps):
         if global_step % args.eval_frequency == 0:
             run.evaluate(global_step, evaluate(policy, [eval_env], [eval_seed], args.eval_episodes))
@@ -496,4 +518,4 @@ def main(args: Args):
 
 
 if __name__ == "__main__":
-    main(parse_args(Args))
+    main(parse_args(Args, check_args))

@@ -1,5 +1,5 @@
 # TD3 (Fujimoto et al. 2018, https://arxiv.org/abs/1802.09477) in CleanRL's single-file style.
-# Differences from CleanRL's td3_continuous_action.py: the twin critics are one batched ensemble,
+# Differences from CleanRL's td3_continuous_action.py: the twin critics are one module (QEnsemble),
 # the reported metric is a deterministic evaluation of the actor every --eval-frequency steps,
 # DeepMind Control tasks run through shimmy, and every piece is importable for tests.
 # The machinery (checks, envs, logging, checkpoints, --num-seeds, --cudagraphs) is imported from rl_utils.
@@ -16,8 +16,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 import torch.optim as optim
 
-from rl_utils import Batch, CudaGraph, ReplayBuffer, Run, SeedEnvs, bf16_autocast, check_finite, evaluate
-from rl_utils import parse_args, per_seed, stack_seeds, to_device
+from rl_utils import Batch, CudaGraph, ReplayBuffer, Run, SeedEnvs, bf16_autocast, check_finite, evaluate, frozen
+from rl_utils import at_least, parse_args, per_seed, positive, stack_seeds, to_device, within
 
 
 @dataclass
@@ -87,35 +87,28 @@ class Args:
 
 
 # ALGO LOGIC: initialize agent here:
-class QEnsemble(nn.Module):
-    """`num_q` critics, concat(obs, action) -> 256 -> 256 -> 1, each layer's weights stacked into one
-    [num_q, in, out] tensor so that one batched matmul evaluates every member."""
-
-    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2, hidden: int = 256):
+class QNetwork(nn.Module):
+    def __init__(self, obs_dim: int, action_dim: int):
         super().__init__()
-        self.num_q = num_q
-        self.activation = F.relu
+        self.fc1 = nn.Linear(obs_dim + action_dim, 256)
+        self.fc2 = nn.Linear(256, 256)
+        self.fc3 = nn.Linear(256, 1)
 
-        def uniform(fan_in, *shape):  # the default init of nn.Linear, drawn independently per member
-            return nn.Parameter(torch.empty(num_q, *shape).uniform_(-(fan_in**-0.5), fan_in**-0.5))
+    def forward(self, x, a):
+        x = torch.cat([x, a], -1)
+        x = F.relu(self.fc1(x))
+        x = F.relu(self.fc2(x))
+        return self.fc3(x).squeeze(-1)
 
-        in_dim = obs_dim + action_dim
-        self.w1, self.b1 = uniform(in_dim, in_dim, hidden), uniform(in_dim, 1, hidden)
-        self.w2, self.b2 = uniform(hidden, hidden, hidden), uniform(hidden, 1, hidden)
-        self.w3, self.b3 = uniform(hidden, 1, hidden), uniform(hidden, 1)  # the output layer, as rows
 
-    def forward(self, obs, actions, members=None, detach_params=False):
-        """Q-values [num_q, batch] (a subset of the critics with `members`). `detach_params` lets gradients reach the
-        actions only, which is all an actor loss needs."""
-        params = [self.w1, self.b1, self.w2, self.b2, self.w3, self.b3]
-        if members is not None:
-            params = [p[members] for p in params]
-        w1, b1, w2, b2, w3, b3 = [p.detach() for p in params] if detach_params else params
-        x = torch.cat([obs, actions], -1)
-        x = x.expand(len(w1), *x.shape).contiguous()  # every member sees the same batch
-        x = self.activation(torch.baddbmm(b1, x, w1))
-        x = self.activation(torch.baddbmm(b2, x, w2))
-        return (x * w3).sum(-1) + b3  # a dot product per member: cheaper than a matmul
+class QEnsemble(nn.ModuleList):
+    """num_q independent QNetworks (TD3's twin critics: 2); called, every critic's Q-values [num_q, batch]."""
+
+    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2):
+        super().__init__(QNetwork(obs_dim, action_dim) for _ in range(num_q))
+
+    def forward(self, obs, actions):
+        return torch.stack([qf(obs, actions) for qf in self])
 
 
 class Actor(nn.Module):
@@ -164,8 +157,8 @@ def critic_loss(batch: Batch, qf: QEnsemble, target_actor: Actor, qf_target: QEn
 
 
 def policy_loss(batch: Batch, actor: Actor, qf: QEnsemble):
-    # TD3 trains the actor on the first critic only; the critic's weights get no gradient
-    return -qf(batch.observations, actor(batch.observations), members=slice(0, 1), detach_params=True).mean()
+    # TD3 trains the actor on the first critic only
+    return -qf[0](batch.observations, actor(batch.observations)).mean()
 
 
 @torch.no_grad()
@@ -184,6 +177,20 @@ def optimize(loss: torch.Tensor, name: str, *optimizers):
     loss.sum().backward()
     for optimizer in optimizers:
         optimizer.step()
+
+
+def check_args(args: Args) -> list:
+    """The flags' valid values, as (holds, message) pairs: parse_args refuses a run that breaks one."""
+    return [
+        *positive(args, "learning_rate", "buffer_size", "batch_size", "policy_frequency", "eval_frequency", "eval_episodes"),
+        *at_least(args, 0, "policy_noise", "noise_clip", "exploration_noise", "learning_starts"),
+        *within(args, "[0, 1]", "gamma"),
+        *within(args, "(0, 1]", "tau"),
+        (
+            args.learning_starts >= args.batch_size,
+            f"--learning-starts ({args.learning_starts}) must be >= --batch-size ({args.batch_size})",
+        ),
+    ]
 
 
 def main(args: Args):
@@ -227,10 +234,11 @@ def main(args: Args):
         with bf16_autocast(device, args.bf16):
             qf_loss, qf_a_values = per_seed(critic_loss)(batch, qf, target_actor, qf_target, args)
             optimize(qf_loss, "qf_loss", q_optimizer)
-            logs = {"losses/qf_values": qf_a_values.mean((-2, -1)), "losses/qf_loss": qf_loss.detach() / qf.num_q}
+            logs = {"losses/qf_values": qf_a_values.mean((-2, -1)), "losses/qf_loss": qf_loss.detach() / len(qf)}
             if policy_step:
-                actor_loss = per_seed(policy_loss)(batch, actor, qf)
-                optimize(actor_loss, "actor_loss", actor_optimizer)
+                with frozen(qf):  # the actor's loss computes no gradient for the critics (SpinningUp's freeze)
+                    actor_loss = per_seed(policy_loss)(batch, actor, qf)
+                    optimize(actor_loss, "actor_loss", actor_optimizer)
                 soft_update([target_actor, qf_target], [actor, qf], args.tau)
                 logs["losses/actor_loss"] = actor_loss.detach()
         return logs
@@ -243,7 +251,8 @@ def main(args: Args):
 
     nets = {"actor": actor, "qf": qf, "target_actor": target_actor, "qf_target": qf_target}
     optimizers = {"q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer}
-    obs = run.start(envs, device, nets, optimizers, buffer=rb)  # what a checkpoint holds; restored on --resume
+    obs = run.start(envs, device, nets, optimizers, buffer=rb)  # restored on --resume, obs too
+    obs = envs.reset() if obs is None else obs  # a fresh run: each env reset with its seed
     for global_step in range(run.start_step, args.total_timesteps):
         if global_step % args.eval_frequency == 0:
             run.evaluate(global_step, evaluate(policy, eval_envs, eval_seeds, args.eval_episodes))
@@ -256,7 +265,7 @@ def main(args: Args):
 
         # execute the game and log data; a time-limit truncation is stored as not terminated, so its target bootstraps
         next_obs, rewards, terminations, truncations, infos = envs.step(actions)
-        rb.add(obs, actions, infos["real_next_obs"], rewards, terminations)
+        rb.add(obs, infos["real_next_obs"], actions, rewards, terminations)
         obs = next_obs
         run.log_episodes(infos, global_step)
 
@@ -275,4 +284,4 @@ def main(args: Args):
 
 
 if __name__ == "__main__":
-    main(parse_args(Args))
+    main(parse_args(Args, check_args))

@@ -23,10 +23,20 @@ class ReplayBuffer:
         self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
         self.storage = torch.zeros((num_seeds, capacity, sum(self.widths)), dtype=torch.float32, device=device)
 
-    def add(self, obs, action, next_obs, reward, termination):
-        """One transition per seed: obs [num_seeds, obs_dim], ..., reward and termination [num_seeds]."""
-        scalars = np.stack([reward, termination], -1)
-        row = np.concatenate([obs, action, next_obs, scalars], -1, dtype=np.float32)
+    def add(self, obs, next_obs, actions, rewards, terminations):
+        """One transition per seed, in CleanRL's order: obs and next_obs [num_seeds, obs_dim], actions [num_seeds,
+        action_dim], rewards and terminations [num_seeds]. A field of the wrong shape stops here, naming it."""
+        fields = {"obs": obs, "next_obs": next_obs, "actions": actions, "rewards": rewards, "terminations": terminations}
+        obs_dim, action_dim = self.widths[0], self.widths[1]
+        shapes = {"obs": (obs_dim,), "next_obs": (obs_dim,), "actions": (action_dim,), "rewards": (), "terminations": ()}
+        for name, value in fields.items():
+            if np.shape(value) != (self.num_seeds, *shapes[name]):
+                raise ValueError(
+                    f"ReplayBuffer.add: {name} has shape {list(np.shape(value))}, not {[self.num_seeds, *shapes[name]]}; "
+                    "the order is add(obs, next_obs, actions, rewards, terminations), each with a leading seeds dimension"
+                )
+        scalars = np.stack([rewards, terminations], -1)
+        row = np.concatenate([obs, actions, next_obs, scalars], -1, dtype=np.float32)
         self.storage[:, self.pos] = torch.from_numpy(row)
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)

@@ -1,20 +1,78 @@
-"""Checkpoints: everything needed to continue a run exactly after a kill. An environment's state is its random
-generators and, mid-episode, how its episode began and the actions since, which EpisodeRecord replays to rebuild it.
-A process of several seeds writes one checkpoint per seed, each in its run folder, each the checkpoint a
-single-seed run of that seed would write in form (its own cut of every stacked parameter)."""
+"""Checkpoints: everything needed to continue a run exactly after a kill (`snapshot`, `restore`), written atomically
+and loaded safely. An environment's state is its random generators and, mid-episode, how its episode began and the
+actions since, which `EpisodeRecord` (the last wrapper of every env) replays to rebuild it. A process of several
+seeds writes one checkpoint per seed (rl_utils.seeds cuts them), each in its run folder."""
 
 import os
 import random
+from typing import Optional
 
 import numpy as np
+import gymnasium as gym
 import torch
-import torch.nn as nn
 
-from rl_utils.cli import fail
-from rl_utils.envs import rng_state, set_rng_state
+from rl_utils.errors import fail
+
+
+def rng_state(rng) -> dict:
+    """A numpy Generator's or RandomState's (dm_control's) state, in types `weights_only` loading accepts."""
+    if isinstance(rng, np.random.RandomState):
+        name, key, pos, has_gauss, gauss = rng.get_state()
+        return {"legacy": (name, torch.from_numpy(key.astype(np.int64)), pos, has_gauss, gauss)}
+    return {"generator": rng.bit_generator.state}
+
+
+def set_rng_state(rng, state: dict):
+    if "legacy" in state:
+        name, key, pos, has_gauss, gauss = state["legacy"]
+        rng.set_state((name, key.numpy().astype(np.uint32), pos, has_gauss, gauss))
+    else:
+        rng.bit_generator.state = state["generator"]
+
+
+class EpisodeRecord(gym.Wrapper):
+    """Remembers how the current episode began (the reset's seed, or the env's random state before the reset) and
+    the actions taken since, so that a checkpoint taken mid-episode rebuilds the env exactly by replaying them."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.episode = None  # None: between episodes
+
+    def reset(self, *, seed=None, options=None):
+        start = rng_state(self.env.unwrapped.np_random) if seed is None else None
+        self.episode = {"seed": seed, "rng": start, "actions": []}
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action):
+        self.episode["actions"].append(np.array(action))
+        result = self.env.step(action)
+        if result[2] or result[3]:  # terminated or truncated
+            self.episode = None
+        return result
+
+    def state_dict(self) -> Optional[dict]:
+        if self.episode is None:
+            return None
+        actions = self.episode["actions"]
+        return {**self.episode, "actions": torch.from_numpy(np.stack(actions)) if actions else torch.zeros(0)}
+
+    def replay(self, state: Optional[dict]):
+        """Rebuilds the episode of a state_dict(): its observation now, or None between episodes."""
+        if state is None:
+            self.episode = None
+            return None
+        if state["rng"] is not None:
+            set_rng_state(self.env.unwrapped.np_random, state["rng"])
+        obs, _ = self.reset(seed=state["seed"])
+        for action in state["actions"].numpy():
+            obs = self.step(action)[0]
+        return obs
+
 
 CHECKPOINT = "checkpoint.pt"
-FORMAT = 2  # 2: networks as plain modules (rl_utils); 1: stacked seeds in every layer (before e39c776's successor)
+# 3: critics as modules of nn.Linear layers (QNetwork); 2: critics as one hand-batched module; 1: every seed stacked
+# in each layer, before rl_utils. A checkpoint of another format resumes only with the scripts that wrote it.
+FORMAT = 3
 
 
 def snapshot(script: str, args, envs, global_step: int, nets: dict, optimizers: dict, parts: dict) -> dict:
@@ -101,90 +159,11 @@ def load_checkpoint(run_dir: str, script: str, name: str = CHECKPOINT) -> dict:
         found = checkpoint.get("script") if isinstance(checkpoint, dict) else None
         fail(f"{path} was not written by {script} (written by {found or 'something else'})")
     if checkpoint.get("format") != FORMAT:
-        fail(f"{path} was written by an older {script}, whose networks held every seed; resume it with that version (e39c776)")
+        fail(
+            f"{path} was written by an older {script} (checkpoint format {checkpoint.get('format')}, now {FORMAT}: its "
+            "networks are laid out otherwise); resume it with the version that wrote it"
+        )
     return checkpoint
-
-
-# Many seeds in one process: each seed's checkpoint holds its cut of the stacked state. Networks and their optimizer
-# states are stacked only when there are several seeds ([num_seeds, ...], cut to [...]); the replay buffer's rows and
-# tensor parts always carry the seeds dimension (cut to [1, ...]).
-def seed_share(net_state: dict, params: set, k: int) -> dict:
-    """Seed k's cut of a stacked network's state_dict (buffers, such as action bounds, are every seed's)."""
-    return {name: t[k].clone() if name in params else t for name, t in net_state.items()}
-
-
-def part_share(state, k: int):
-    if isinstance(state, torch.Tensor):
-        return state[k : k + 1].clone()
-    if isinstance(state, dict):
-        return {key: value[k : k + 1].clone() if isinstance(value, torch.Tensor) else value for key, value in state.items()}
-    return state
-
-
-def split_seeds(state: dict, nets: dict, parts: dict, eval_returns: list, run_dirs: list) -> list:
-    """One checkpoint per seed from a snapshot() of the stacked seeds: the seed's cut of every parameter, optimizer
-    moment, replay buffer and tensor part, its env and its evaluations; the flags, the step and the process's
-    random generators in all."""
-    n = len(run_dirs)
-    params = {name: {key for key, _ in net.named_parameters()} for name, net in nets.items()}
-    checkpoints = []
-    for k in range(n):
-        checkpoint = {**state, "run_names": [os.path.basename(run_dir) for run_dir in run_dirs], "seed_index": k}
-        checkpoint["eval_returns"] = eval_returns[k]
-        checkpoint["envs"] = state["envs"][k : k + 1]
-        if n > 1:  # one seed's state is its own (an on-policy rollout has no seeds dimension to cut)
-            checkpoint.update({name: part_share(state[name], k) for name in parts})
-            checkpoint["nets"] = {name: seed_share(sd, params[name], k) for name, sd in state["nets"].items()}
-            checkpoint["optimizers"] = {
-                name: {
-                    **sd,
-                    "state": {
-                        i: {key: t[k].clone() if t.dim() else t for key, t in s.items()} for i, s in sd["state"].items()
-                    },
-                }
-                for name, sd in state["optimizers"].items()
-            }
-        checkpoints.append(checkpoint)
-    return checkpoints
-
-
-def join_seeds(checkpoints: list, nets: dict, parts: dict) -> dict:
-    """split_seeds() undone: the seeds' checkpoints as one snapshot() of the stacked seeds, for restore()."""
-    first = checkpoints[0]
-    if len(checkpoints) == 1:
-        return first
-    params = {name: {key for key, _ in net.named_parameters()} for name, net in nets.items()}
-    state = dict(first)
-    state["nets"] = {
-        name: {
-            key: torch.stack([c["nets"][name][key] for c in checkpoints]) if key in params[name] else t
-            for key, t in sd.items()
-        }
-        for name, sd in first["nets"].items()
-    }
-    state["optimizers"] = {
-        name: {
-            **sd,
-            "state": {
-                i: {
-                    key: torch.stack([c["optimizers"][name]["state"][i][key] for c in checkpoints]) if t.dim() else t
-                    for key, t in s.items()
-                }
-                for i, s in sd["state"].items()
-            },
-        }
-        for name, sd in first["optimizers"].items()
-    }
-    for name in parts:
-        if isinstance(first[name], torch.Tensor):
-            state[name] = torch.cat([c[name] for c in checkpoints])
-        elif isinstance(first[name], dict):
-            state[name] = {
-                key: torch.cat([c[name][key] for c in checkpoints]) if isinstance(value, torch.Tensor) else value
-                for key, value in first[name].items()
-            }
-    state["envs"] = [env for c in checkpoints for env in c["envs"]]
-    return state
 
 
 def write_checkpoints(run_dirs: list, states: list, name: str = CHECKPOINT):
@@ -213,17 +192,3 @@ def load_checkpoints(run_dir: str, script: str) -> list:
         if checkpoints[k]["seed_index"] != k:
             fail(f"--resume {run_dir}: {d} holds the checkpoint of another seed of the process")
     return checkpoints
-
-
-def model_of_seed(saved: dict, k: int, num_seeds: int) -> dict:
-    """--save-model: seed k's cut of these networks (or tensors), as a single-seed run saves them."""
-    model = {}
-    for name, x in saved.items():
-        if isinstance(x, nn.Module):
-            state = x.state_dict()
-            model[name] = seed_share(state, {key for key, _ in x.named_parameters()}, k) if num_seeds > 1 else state
-        elif isinstance(x, torch.Tensor):
-            model[name] = x.detach().cpu()[k : k + 1].clone()
-        else:  # an object with a state_dict(), e.g. PPO's observation statistics
-            model[name] = x.state_dict()
-    return model

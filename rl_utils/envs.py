@@ -9,7 +9,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from rl_utils.cli import fail
+from rl_utils.checkpoints import EpisodeRecord
+from rl_utils.errors import fail
 
 
 def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
@@ -50,61 +51,6 @@ def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_e
     env = EpisodeRecord(env)
     env.action_space.seed(seed)
     return env
-
-
-def rng_state(rng) -> dict:
-    """A numpy Generator's or RandomState's (dm_control's) state, in types `weights_only` loading accepts."""
-    if isinstance(rng, np.random.RandomState):
-        name, key, pos, has_gauss, gauss = rng.get_state()
-        return {"legacy": (name, torch.from_numpy(key.astype(np.int64)), pos, has_gauss, gauss)}
-    return {"generator": rng.bit_generator.state}
-
-
-def set_rng_state(rng, state: dict):
-    if "legacy" in state:
-        name, key, pos, has_gauss, gauss = state["legacy"]
-        rng.set_state((name, key.numpy().astype(np.uint32), pos, has_gauss, gauss))
-    else:
-        rng.bit_generator.state = state["generator"]
-
-
-class EpisodeRecord(gym.Wrapper):
-    """Remembers how the current episode began (the reset's seed, or the env's random state before the reset) and
-    the actions taken since, so that a checkpoint taken mid-episode rebuilds the env exactly by replaying them."""
-
-    def __init__(self, env: gym.Env):
-        super().__init__(env)
-        self.episode = None  # None: between episodes
-
-    def reset(self, *, seed=None, options=None):
-        start = rng_state(self.env.unwrapped.np_random) if seed is None else None
-        self.episode = {"seed": seed, "rng": start, "actions": []}
-        return self.env.reset(seed=seed, options=options)
-
-    def step(self, action):
-        self.episode["actions"].append(np.array(action))
-        result = self.env.step(action)
-        if result[2] or result[3]:  # terminated or truncated
-            self.episode = None
-        return result
-
-    def state_dict(self) -> Optional[dict]:
-        if self.episode is None:
-            return None
-        actions = self.episode["actions"]
-        return {**self.episode, "actions": torch.from_numpy(np.stack(actions)) if actions else torch.zeros(0)}
-
-    def replay(self, state: Optional[dict]):
-        """Rebuilds the episode of a state_dict(): its observation now, or None between episodes."""
-        if state is None:
-            self.episode = None
-            return None
-        if state["rng"] is not None:
-            set_rng_state(self.env.unwrapped.np_random, state["rng"])
-        obs, _ = self.reset(seed=state["seed"])
-        for action in state["actions"].numpy():
-            obs = self.step(action)[0]
-        return obs
 
 
 class SeedEnvs:

@@ -116,16 +116,23 @@ def cli_flags(script: str, **values) -> list:
 
 
 def assert_ensemble_is_independent_mlps(qf, obs_dim: int, action_dim: int, activation) -> tuple:
-    """A QEnsemble of 3 members against each member's MLP computed by hand; returns (obs, actions, Q-values)."""
+    """A QEnsemble of 3 critics against each critic's MLP computed by hand (concat -> fc1 -> fc2 -> fc3); returns (obs,
+    actions, Q-values). An edit to one critic's layer changes that critic's values alone."""
     torch.manual_seed(0)
     obs, actions = torch.randn(8, obs_dim), torch.randn(8, action_dim)
     q = qf(obs, actions)
-    assert q.shape == (3, 8)
-    for k in range(3):
-        x = activation(torch.cat([obs, actions], 1) @ qf.w1[k] + qf.b1[k, 0])
-        x = activation(x @ qf.w2[k] + qf.b2[k, 0])
-        torch.testing.assert_close(q[k], x @ qf.w3[k, 0] + qf.b3[k])
-    assert not torch.equal(qf.w1[0], qf.w1[1])  # drawn independently
+    assert q.shape == (3, 8) and len(qf) == 3
+    for k, critic in enumerate(qf):
+        x = activation(torch.cat([obs, actions], 1) @ critic.fc1.weight.T + critic.fc1.bias)
+        x = activation(x @ critic.fc2.weight.T + critic.fc2.bias)
+        torch.testing.assert_close(q[k], (x @ critic.fc3.weight.T + critic.fc3.bias).squeeze(-1))
+    assert not torch.equal(qf[0].fc1.weight, qf[1].fc1.weight)  # drawn independently
+    with torch.no_grad():
+        qf[1].fc2.weight.mul_(2.0)
+        changed = qf(obs, actions)
+    assert torch.equal(changed[0], q[0]) and torch.equal(changed[2], q[2]) and not torch.equal(changed[1], q[1])
+    with torch.no_grad():
+        qf[1].fc2.weight.div_(2.0)
     return obs, actions, q
 
 

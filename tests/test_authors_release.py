@@ -34,13 +34,14 @@ def release_td3():
 
 
 def copy_critic(release_critic, ours: oparl.QEnsemble):
-    """The release's EnsembleLinear layers ([N, in, out] weights, [N, 1, out] biases) into our QEnsemble."""
+    """The release's EnsembleLinear layers ([N, in, out] weights, [N, 1, out] biases) into our QEnsemble's N critics
+    (nn.Linear: [out, in] weights, [out] biases)."""
     (l1, l2), out = release_critic.backbones, release_critic.output_layer
     with torch.no_grad():
-        for mine, theirs in [(ours.w1, l1.weight), (ours.b1, l1.bias), (ours.w2, l2.weight), (ours.b2, l2.bias)]:
-            mine.copy_(theirs)
-        ours.w3.copy_(out.weight.transpose(1, 2))  # our output layer is stored as rows
-        ours.b3.copy_(out.bias.reshape(Q_NUM, 1))
+        for k, critic in enumerate(ours):
+            for mine, theirs in [(critic.fc1, l1), (critic.fc2, l2), (critic.fc3, out)]:
+                mine.weight.copy_(theirs.weight[k].T)
+                mine.bias.copy_(theirs.bias[k, 0])
 
 
 def copy_actor(release_actor, ours: oparl.Actor):
@@ -75,11 +76,12 @@ def both(tmp_path, monkeypatch):
     ours = {
         "qf": result["qf"],
         "qf_target": result["qf_target"],
-        "pessimistic": result["pessimistic_actor"],
-        "pessimistic_target": result["target_pessimistic_actor"],
+        "pessimistic": result["actor"],
+        "pessimistic_target": result["target_actor"],
         "optimistic": result["optimistic_actor"],
     }
-    assert ours["qf"].w1.shape == (Q_NUM, OBS_DIM + ACTION_DIM, 256) and ours["pessimistic"].action_scale.tolist() == [1.0] * 3
+    assert len(ours["qf"]) == Q_NUM and ours["qf"][0].fc1.weight.shape == (256, OBS_DIM + ACTION_DIM)
+    assert ours["pessimistic"].action_scale.tolist() == [1.0] * 3
     with torch.no_grad():  # targets apart from their sources, so that the target networks are really the ones used
         for p in [*policy.critic_target.parameters(), *policy.actor_target.parameters()]:
             p.add_(0.01 * torch.randn_like(p))
@@ -134,7 +136,7 @@ def test_one_training_iteration_matches_the_release(both, monkeypatch):
     # to 1.2e-4, in one draw); without it a constant factor cannot change an Adam step
     for optimizer in (policy.critic_optimizer, policy.actor_optimizer, policy.exit_actor_optimizer):
         optimizer.param_groups[0]["eps"] = 1e-30
-    for name in ("q_optimizer", "pessimistic_optimizer", "optimistic_optimizer"):  # main's, fused as it builds them
+    for name in ("q_optimizer", "actor_optimizer", "optimistic_optimizer"):  # main's, fused as it builds them
         assert result[name].param_groups[0]["lr"] == policy.critic_optimizer.param_groups[0]["lr"]
         result[name].param_groups[0]["eps"] = 1e-30
     torch.manual_seed(7)  # the target noise: the release's first draw, as ours is, of the actions' shape

@@ -6,6 +6,7 @@ import ast
 import importlib.util
 import os
 import pkgutil
+import re
 import subprocess
 import sys
 
@@ -89,3 +90,28 @@ def test_lines_fit_the_formatters_length():
 def test_repository_is_formatted_with_ruff():
     result = subprocess.run([sys.executable, "-m", "ruff", "format", "--check", "."], cwd=REPO, capture_output=True, text=True)
     assert result.returncode == 0, f"run `ruff format .`:\n{result.stdout}{result.stderr}"
+
+
+def test_rl_utils_modules_import_each_other_without_a_cycle_and_name_no_commits():
+    """Each rl_utils module has one job and imports only the modules below it: no cycle (a module that needs one
+    above it has taken another's job). No code or message names a commit hash: a commit says nothing to a user."""
+    imports = {}
+    for info in pkgutil.iter_modules(rl_utils.__path__):
+        source = open(os.path.join(REPO, "rl_utils", f"{info.name}.py")).read()
+        found = set()
+        for node in ast.walk(ast.parse(source)):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("rl_utils"):
+                found |= {node.module.split(".")[1]} if "." in node.module else {alias.name for alias in node.names}
+            elif isinstance(node, ast.Import):
+                found |= {alias.name.split(".")[1] for alias in node.names if alias.name.startswith("rl_utils.")}
+        imports[info.name] = found - {info.name}
+        assert not re.search(r"\b[0-9a-f]{7,40}\b", source), f"rl_utils/{info.name}.py names a commit"
+
+    def visit(module, path):
+        assert module not in path, f"rl_utils imports in a cycle: {' -> '.join([*path, module])}"
+        for imported in imports.get(module, ()):
+            visit(imported, [*path, module])
+
+    for module in imports:
+        visit(module, [])
+    assert imports["errors"] == set() and "run" not in set().union(*imports.values())

@@ -21,6 +21,7 @@ import torch.nn as nn
 
 from conftest import OFF_POLICY, REPO, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
 from rl_utils import SeedEnvs, evaluate, per_seed, stack_seeds
+from rl_utils.seeds import join_seeds, split_seeds
 from rl_utils import checkpoints as ckpt
 from rl_utils.cli import validate
 
@@ -209,7 +210,7 @@ def test_a_seeds_update_is_the_one_seed_update_on_the_same_batch(script, short_r
     nets, opts = modules(many), optimizers(many)
     parts = {"buffer": many["rb"], **tensor_parts(many)}
     state = ckpt.snapshot(f"{script}_continuous_action.py", load(script).Args(), [], 0, nets, opts, parts)
-    share = ckpt.split_seeds(state, nets, parts, [[], [], []], ["a", "b", "c"])[2]  # seed index 2, as a checkpoint
+    share = split_seeds(state, parts, [[], [], []], ["a", "b", "c"])[2]  # seed index 2, as a checkpoint
     one_parts = {"buffer": one["rb"], **tensor_parts(one)}
     ckpt.restore(share, [], {k: one[k] for k in nets}, {k: one[k] for k in opts}, one_parts)
     if "alpha" in many:  # SAC's entropy coefficient follows log_alpha
@@ -470,7 +471,7 @@ def test_each_seeds_batch_comes_from_its_own_transitions():
     rb = ReplayBuffer(8, 2, 1, 3, torch.device("cpu"))
     for i in range(5):  # seed k's rows hold 100 k + i in every field
         rows = np.array([100.0 * k + i for k in range(3)])
-        rb.add(np.stack([rows, rows], -1), rows[:, None], np.stack([rows, rows], -1), rows, rows * 0)
+        rb.add(np.stack([rows, rows], -1), np.stack([rows, rows], -1), rows[:, None], rows, rows * 0)
     batch = rb.sample(4, 50)
     assert batch.observations.shape == (3, 4, 50, 2) and batch.rewards.shape == (3, 4, 50)
     for k in range(3):

@@ -72,9 +72,12 @@ def params(net):
 
 
 def actor_step(batch, pessimistic, optimistic, optimizers, qf):
-    """main's actor step: both losses from one ensemble pass, one backward pass of their sum, both optimizers."""
+    """main's actor step: the critics frozen, both losses from one ensemble pass, one backward pass of their sum, both
+    optimizers."""
+    qf.requires_grad_(False)
     pessimistic_loss, optimistic_loss = oparl.policy_losses(batch, pessimistic, optimistic, qf)
     oparl.optimize(pessimistic_loss + optimistic_loss, "actor_loss", *optimizers)
+    qf.requires_grad_(True)
     return pessimistic_loss.detach(), optimistic_loss.detach()
 
 
@@ -184,8 +187,7 @@ def test_candidate_with_the_largest_ensemble_std_is_taken():
 def seed_networks(stacked: list, k: int, *fresh) -> list:
     """Seed k's networks out of stack_seeds' stacked ones, as plain single-seed networks (`fresh`, overwritten)."""
     for net, single in zip(stacked, fresh):
-        stacked_names = dict(net.named_parameters())  # the buffers (action bounds) are not stacked
-        single.load_state_dict({n: t[k] if n in stacked_names else t for n, t in net.state_dict().items()})
+        single.load_state_dict({n: t[k] for n, t in net.state_dict().items()})  # parameters and buffers, stacked
     return list(fresh)
 
 
@@ -197,7 +199,7 @@ def test_each_seed_takes_the_candidate_its_own_critics_spread_most_on(monkeypatc
     torch.manual_seed(0)
     networks = lambda: [oparl.Actor(OBS_DIM, SPACE), oparl.QEnsemble(OBS_DIM, ACTION_DIM, num_q=5)]  # noqa: E731
     stacked = stack_seeds(networks, [1, 2, 3], torch.device("cpu"))
-    assert stacked[1].w1.shape[:2] == (3, 5)  # 3 seeds of 5 critics
+    assert len(stacked[1]) == 5 and stacked[1][4].fc1.weight.shape[0] == 3  # 5 critics, each of 3 seeds
     singles = [seed_networks(stacked, k, *networks()) for k in range(3)]
     obs = torch.randn(3, OBS_DIM)
     args = oparl.Args(num_candidates=8, exploration_noise=0.5)
@@ -234,15 +236,17 @@ def test_one_candidate_is_the_noisy_optimistic_action():
 
 
 def test_release_critic_style():
+    """The release's critics: SiLU, weights normal with std 1/(2 sqrt(fan_in)), zero biases; TD3's: ReLU and
+    nn.Linear's init (uniform within 1/sqrt(fan_in), biases too)."""
     torch.manual_seed(0)
-    qf = oparl.QEnsemble(300, 20, num_q=5, hidden=256, style="release")
-    assert qf.activation is torch.nn.functional.silu
-    assert qf.w1.std().item() == pytest.approx(0.5 / 320**0.5, rel=0.02)
-    assert qf.w2.std().item() == pytest.approx(0.5 / 256**0.5, rel=0.02)
-    assert all(torch.equal(b, torch.zeros_like(b)) for b in (qf.b1, qf.b2, qf.b3))
-    td3_style = oparl.QEnsemble(300, 20, num_q=5, hidden=256, style="td3")
-    assert td3_style.activation is torch.nn.functional.relu
-    assert td3_style.b1.abs().max() > 0 and td3_style.w2.abs().max() <= 1 / 16
+    qf = oparl.QEnsemble(300, 20, num_q=5, style="release")
+    assert all(critic.activation is torch.nn.functional.silu for critic in qf)
+    assert torch.stack([c.fc1.weight for c in qf]).std().item() == pytest.approx(0.5 / 320**0.5, rel=0.02)
+    assert torch.stack([c.fc2.weight for c in qf]).std().item() == pytest.approx(0.5 / 256**0.5, rel=0.02)
+    assert all(torch.equal(layer.bias, torch.zeros_like(layer.bias)) for c in qf for layer in (c.fc1, c.fc2, c.fc3))
+    td3_style = oparl.QEnsemble(300, 20, num_q=5, style="td3")
+    assert all(critic.activation is torch.nn.functional.relu for critic in td3_style)
+    assert td3_style[0].fc1.bias.abs().max() > 0 and td3_style[0].fc2.weight.abs().max() <= 1 / 16
 
 
 def run(tmp_path, monkeypatch, name, **overrides):
@@ -294,11 +298,11 @@ def test_evaluation_uses_the_pessimistic_actor_without_noise(tmp_path, monkeypat
 
 def test_ablation_flags_change_what_they_say(tmp_path, monkeypatch):
     default = run(tmp_path, monkeypatch, "default")
-    assert default["qf"].w1.shape[0] == 5 and default["qf"].activation is torch.nn.functional.silu
+    assert len(default["qf"]) == 5 and default["qf"][0].activation is torch.nn.functional.silu
     two = run(tmp_path, monkeypatch, "two", q_num=2)
-    assert two["qf"].w1.shape[0] == 2 and two["qf"].w2.shape[1:] == default["qf"].w2.shape[1:]
+    assert len(two["qf"]) == 2 and two["qf"][1].fc2.weight.shape == default["qf"][1].fc2.weight.shape
     relu = run(tmp_path, monkeypatch, "relu", critic_style="td3")
-    assert relu["qf"].activation is torch.nn.functional.relu and relu["qf"].w1.shape[0] == 5
+    assert relu["qf"][0].activation is torch.nn.functional.relu and len(relu["qf"]) == 5
     # optimistic only / pessimistic only are the ratio's ends, checked by test_realised_optimistic_share
 
 

@@ -168,6 +168,7 @@ def test_a_checkpoint_restores_every_optimizers_state_as_saved(num_seeds, tmp_pa
     optimizers, equal the saved ones, and the next step then moves the weights exactly as the uninterrupted one does
     (with two seeds, each seed's cut of the stacked state goes to its own file and comes back stacked)."""
     from rl_utils import stack_seeds
+    from rl_utils.seeds import join_seeds, split_seeds
 
     env = make_env("Pendulum-v1", seed=3)
     env.reset(seed=3)
@@ -191,12 +192,12 @@ def test_a_checkpoint_restores_every_optimizers_state_as_saved(num_seeds, tmp_pa
         step(nets, opts)
     run_dirs = [str(tmp_path / f"seed{k}") for k in seeds]
     state = checkpoints.snapshot("td3_continuous_action.py", args, [env], 3, nets, opts, {})
-    for run_dir, seed_state in zip(run_dirs, checkpoints.split_seeds(state, nets, {}, [[] for _ in seeds], run_dirs)):
+    for run_dir, seed_state in zip(run_dirs, split_seeds(state, {}, [[] for _ in seeds], run_dirs)):
         os.makedirs(run_dir)
         checkpoints.write_checkpoint(os.path.join(run_dir, "checkpoint.pt"), seed_state)
     loaded = [torch.load(os.path.join(d, "checkpoint.pt"), weights_only=True) for d in run_dirs]
     fresh_nets, fresh_opts = built()
-    checkpoints.restore(checkpoints.join_seeds(loaded, fresh_nets, {}), [env], fresh_nets, fresh_opts, {})
+    checkpoints.restore(join_seeds(loaded, {}), [env], fresh_nets, fresh_opts, {})
     saved, restored = opts["opt"].state_dict(), fresh_opts["opt"].state_dict()
     assert restored["param_groups"] == saved["param_groups"]
     assert saved["state"].keys() == restored["state"].keys() and len(saved["state"]) == 4
@@ -288,9 +289,9 @@ def test_truncated_foreign_and_old_checkpoints_are_refused(script, finished_run,
     (tmp_path / "foreign").mkdir()
     torch.save({"script": "someone_else.py"}, tmp_path / "foreign" / "checkpoint.pt")
     cases["foreign"] = (None, "was not written by")
-    # the layout before rl_utils (format 1: every seed stacked in each network's parameters) does not load into it
+    # the layout before this one (format 2: the critics as one hand-batched module) does not load into it
     (tmp_path / "old").mkdir()
-    torch.save({**torch.load(path, weights_only=True), "format": 1}, tmp_path / "old" / "checkpoint.pt")
+    torch.save({**torch.load(path, weights_only=True), "format": 2}, tmp_path / "old" / "checkpoint.pt")
     cases["old"] = (None, "was written by an older")
 
     class Exploit:  # a pickle that would run code when loaded without weights_only

@@ -105,7 +105,8 @@ def test_actor_update_leaves_the_critic_alone_and_lowers_its_loss():
     batch = Batch(torch.randn(128, OBS_DIM), None, None, None, None)
     before = [p.detach().clone() for p in qf.parameters()]
     losses = []
-    for _ in range(100):  # main's actor step: the loss, then optimize
+    qf.requires_grad_(False)  # main's actor step: the critics frozen, the loss, then optimize
+    for _ in range(100):
         loss = sac.policy_loss(batch, actor, qf, torch.tensor(0.2))
         sac.optimize(loss, "actor_loss", optimizer)
         losses.append(loss.item())

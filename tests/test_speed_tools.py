@@ -228,7 +228,7 @@ def test_levers_prints_one_row_per_lever():
     result = tool("levers.py", "--repeats", "1", "--calls", "2")
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ") and not line.startswith("| lever")]
-    assert len(rows) == 10 and any("fused" in row for row in rows)
+    assert len(rows) == 8 and any("fused" in row for row in rows) and any("hand-batched" in row for row in rows)
 
 
 def test_profile_run_attributes_samples_to_phases():

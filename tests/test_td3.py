@@ -23,8 +23,8 @@ def filled_buffer(capacity=10, rows=7, num_seeds=1):
         j = i + 100 * seed
         rb.add(
             np.broadcast_to(j, (num_seeds, OBS_DIM)),
-            np.broadcast_to(-j, (num_seeds, ACTION_DIM)),
             np.broadcast_to(j + 0.5, (num_seeds, OBS_DIM)),
+            np.broadcast_to(-j, (num_seeds, ACTION_DIM)),
             10.0 * j[:, 0],
             j[:, 0] % 2,
         )
@@ -43,6 +43,22 @@ def test_replay_buffer_samples_whole_transitions():
     torch.testing.assert_close(batch.rewards, 10.0 * i)
     torch.testing.assert_close(batch.terminations, i % 2)
     assert batch.rewards.shape == batch.terminations.shape == (500,)
+
+
+def test_replay_buffer_add_takes_cleanrls_order_and_names_a_field_of_the_wrong_shape():
+    """add(obs, next_obs, actions, rewards, terminations), as CleanRL's rb.add; the earlier order (actions second), a
+    missing seeds dimension or a field of another width stops at the call, naming the field and the order."""
+    rb = ReplayBuffer(10, OBS_DIM, ACTION_DIM, 1, torch.device("cpu"))
+    obs, next_obs, actions = np.zeros((1, OBS_DIM)), np.ones((1, OBS_DIM)), np.full((1, ACTION_DIM), 2.0)
+    rb.add(obs, next_obs, actions, np.array([3.0]), np.array([0.0]))
+    batch = rb.sample(1)
+    assert batch.next_observations.tolist() == [[[1.0] * OBS_DIM]] and batch.actions.tolist() == [[[2.0] * ACTION_DIM]]
+    order = r"the order is add\(obs, next_obs, actions, rewards, terminations\)"
+    with pytest.raises(ValueError, match=rf"^ReplayBuffer.add: next_obs has shape \[1, 2\], not \[1, 4\]; {order}"):
+        rb.add(obs, actions, next_obs, np.array([3.0]), np.array([0.0]))  # actions where next_obs goes
+    with pytest.raises(ValueError, match=r"^ReplayBuffer.add: obs has shape \[4\], not \[1, 4\]"):
+        rb.add(obs[0], next_obs[0], actions[0], 3.0, 0.0)  # one seed's transition without the seeds dimension
+    assert rb.size == 1
 
 
 def test_replay_buffer_overwrites_the_oldest_rows_when_full():
@@ -66,12 +82,7 @@ def test_replay_buffer_draws_each_seeds_batch_from_its_own_transitions():
 def test_q_ensemble_members_are_independent_mlps():
     qf = td3.QEnsemble(OBS_DIM, ACTION_DIM, num_q=3)
     obs, actions, q = assert_ensemble_is_independent_mlps(qf, OBS_DIM, ACTION_DIM, F.relu)
-    torch.testing.assert_close(qf(obs, actions, members=slice(0, 1)), q[:1])
-
-
-def test_q_ensemble_members_start_different():
-    qf = td3.QEnsemble(OBS_DIM, ACTION_DIM, num_q=2)
-    assert not torch.equal(qf.w1[0], qf.w1[1])
+    torch.testing.assert_close(qf[0](obs, actions), q[0])  # a critic alone, as TD3's actor loss uses the first
 
 
 def test_actor_respects_asymmetric_bounds():
@@ -183,6 +194,7 @@ def test_actor_update_uses_q1_and_never_touches_the_critic():
     actor, qf, _, _, _, actor_optimizer, batch = make_agent()
     qf_before, actor_before = snapshot(qf), snapshot(actor)
     q1_before = qf(batch.observations, actor(batch.observations))[0].mean().item()
+    qf.requires_grad_(False)  # as main steps the actor
     loss = td3.policy_loss(batch, actor, qf)
     assert loss.item() == pytest.approx(-q1_before, rel=1e-5)
     td3.optimize(loss, "actor_loss", actor_optimizer)
@@ -193,3 +205,46 @@ def test_actor_update_uses_q1_and_never_touches_the_critic():
     for _ in range(30):
         td3.optimize(td3.policy_loss(batch, actor, qf), "actor_loss", actor_optimizer)
     assert qf(batch.observations, actor(batch.observations))[0].mean().item() > q1_before  # ascends Q1
+
+
+@pytest.mark.parametrize("script", ["td3", "oparl"])
+def test_the_critics_compute_what_the_hand_batched_ensemble_did(script):
+    """QEnsemble, a loop over QNetworks, against the hand-batched ensemble the scripts had before (each layer's weights
+    stacked into one [num_q, in, out] tensor, one baddbmm a layer), on the same weights: the Q-values, the gradients of
+    a critic loss and one fused Adam step agree to float tolerance."""
+    import oparl_continuous_action as oparl
+
+    module = {"td3": td3, "oparl": oparl}[script]
+    torch.manual_seed(0)
+    qf = module.QEnsemble(OBS_DIM, ACTION_DIM, num_q=3)
+    activation = qf[0].activation if script == "oparl" else F.relu
+    stacked = [
+        torch.stack([c.fc1.weight.T for c in qf]),
+        torch.stack([c.fc1.bias[None] for c in qf]),
+        torch.stack([c.fc2.weight.T for c in qf]),
+        torch.stack([c.fc2.bias[None] for c in qf]),
+        torch.stack([c.fc3.weight[0] for c in qf]),
+        torch.stack([c.fc3.bias for c in qf]),
+    ]
+    stacked = [tensor.detach().clone().requires_grad_() for tensor in stacked]
+
+    def batched(obs, actions):  # the scripts' QEnsemble.forward before
+        w1, b1, w2, b2, w3, b3 = stacked
+        x = torch.cat([obs, actions], -1).expand(len(w1), -1, -1).contiguous()
+        x = activation(torch.baddbmm(b1, x, w1))
+        x = activation(torch.baddbmm(b2, x, w2))
+        return (x * w3[:, None]).sum(-1) + b3
+
+    obs, actions, y = torch.randn(64, OBS_DIM), torch.randn(64, ACTION_DIM), torch.randn(64)
+    torch.testing.assert_close(qf(obs, actions), batched(obs, actions), rtol=1e-5, atol=1e-6)
+    optimizers = [torch.optim.Adam(qf.parameters(), lr=1e-3, fused=True), torch.optim.Adam(stacked, lr=1e-3, fused=True)]
+    for optimizer, q in zip(optimizers, (qf(obs, actions), batched(obs, actions))):
+        optimizer.zero_grad()
+        ((q - y) ** 2).mean(-1).sum().backward()
+    torch.testing.assert_close(torch.stack([c.fc2.weight.grad.T for c in qf]), stacked[2].grad, rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(torch.stack([c.fc3.bias.grad for c in qf]), stacked[5].grad, rtol=1e-4, atol=1e-6)
+    for optimizer in optimizers:
+        optimizer.step()
+    torch.testing.assert_close(torch.stack([c.fc1.weight.T for c in qf]), stacked[0], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(torch.stack([c.fc3.weight[0] for c in qf]), stacked[4], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(qf(obs, actions), batched(obs, actions), rtol=1e-5, atol=1e-6)

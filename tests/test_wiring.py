@@ -100,15 +100,15 @@ WIRING = {
         "evaluate": {"num_episodes": "args.eval_episodes"},
     },
     "oparl": {
-        "noisy_action": {"actor": "pessimistic_actor", "exploration_noise": "args.exploration_noise"},
+        "noisy_action": {"actor": "actor", "exploration_noise": "args.exploration_noise"},
         "optimistic_action": {"optimistic_actor": "optimistic_actor", "qf": "qf", "args": "args"},
-        "critic_loss": {"qf": "qf", "target_actor": "target_pessimistic_actor", "qf_target": "qf_target", "args": "args"},
+        "critic_loss": {"qf": "qf", "target_actor": "target_actor", "qf_target": "qf_target", "args": "args"},
         "optimize(qf_loss)": {"optimizers": ["q_optimizer"]},
-        "policy_losses": {"pessimistic_actor": "pessimistic_actor", "optimistic_actor": "optimistic_actor", "qf": "qf"},
-        "optimize(actor_loss)": {"optimizers": ["pessimistic_optimizer", "optimistic_optimizer"]},
+        "policy_losses": {"actor": "actor", "optimistic_actor": "optimistic_actor", "qf": "qf"},
+        "optimize(actor_loss)": {"optimizers": ["actor_optimizer", "optimistic_optimizer"]},
         "soft_update": {
-            "targets": ["target_pessimistic_actor", "qf_target"],
-            "sources": ["pessimistic_actor", "qf"],
+            "targets": ["target_actor", "qf_target"],
+            "sources": ["actor", "qf"],
             "tau": "args.tau",
         },
         "evaluate": {"num_episodes": "args.eval_episodes"},
@@ -219,9 +219,9 @@ SCHEDULE = {
     "ebd": rollout_step(["disagreement", "advantages_and_returns", "compute_gae", "compute_gae", "update_policy"]),
 }
 # the network evaluated (and saved as "actor" in the --save-model file), where it is not "actor"
-EVALUATED = {"oparl": "pessimistic_actor", "ppo": "agent"}  # RND and EBD inherit PPO's
+EVALUATED = {"ppo": "agent"}  # RND and EBD inherit PPO's
 # (source, copy) of a reset every --reset-frequency training iterations (OPARL: pi_opt <- pi_pes)
-RESETS = {"oparl": ("pessimistic_actor", "optimistic_actor")}
+RESETS = {"oparl": ("actor", "optimistic_actor")}
 # the entropy target alpha is tuned to, on Hopper-v4 (3 action dimensions): SAC's -|A|; REDQ's release's table
 ENTROPY_TARGET = {"sac": -3.0, "redq": -1.0}
 # the arguments of the policy update that come from the advantage computation's result, in its order
@@ -500,3 +500,21 @@ def test_redq_tunes_alpha_to_the_target_entropy_given(tmp_path, monkeypatch):
         "redq", tmp_path, monkeypatch, target_entropy=-2.5, total_timesteps=66, learning_starts=64, eval_frequency=66
     )
     assert {call["target_entropy"] for call in spy.of("alpha_loss_fn")} == {-2.5}
+
+
+@pytest.mark.parametrize("script", [s for s in SCRIPTS if "QEnsemble" in dir(load(s))])
+def test_an_actor_step_computes_no_gradient_for_the_critics(script, tmp_path, monkeypatch):
+    """main freezes the critics (requires_grad off) for each actor step and unfreezes them for their own: an actor's
+    loss computes no gradient for the critics' weights (work wasted, and recorded into every --cudagraphs replay)."""
+    monkeypatch.chdir(tmp_path)
+    module = load(script)
+    seen = []
+
+    def requires_grad(spy, arguments):
+        seen.append((arguments["name"], {p.requires_grad for p in spy.nets["qf"].parameters()}))
+
+    Spy(module, ["optimize"], monkeypatch, hooks={"optimize": requires_grad})
+    module.main(small_args(module, env_id="Pendulum-v1", total_timesteps=260, learning_starts=250, batch_size=32))
+    assert {name for name, _ in seen} >= {"qf_loss", "actor_loss"}
+    assert all(flags == {False} for name, flags in seen if name == "actor_loss"), seen
+    assert all(flags == {True} for name, flags in seen if name == "qf_loss"), seen

@@ -33,6 +33,23 @@ def mlp_critic():  # CleanRL's QNetwork
     return nn.Sequential(nn.Linear(OBS + ACT, 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, 1))
 
 
+class BatchedEnsemble(nn.Module):
+    """N critics with each layer's weights stacked into one [N, in, out] tensor, one batched matmul per layer (what the
+    scripts' QEnsemble was before it became a loop over QNetworks)."""
+
+    def __init__(self, n: int):
+        super().__init__()
+        self.w1, self.b1 = nn.Parameter(torch.randn(n, OBS + ACT, 256) * 0.1), nn.Parameter(torch.zeros(n, 1, 256))
+        self.w2, self.b2 = nn.Parameter(torch.randn(n, 256, 256) * 0.06), nn.Parameter(torch.zeros(n, 1, 256))
+        self.w3, self.b3 = nn.Parameter(torch.randn(n, 256) * 0.06), nn.Parameter(torch.zeros(n, 1))
+
+    def forward(self, obs, actions):
+        x = torch.cat([obs, actions], -1).expand(len(self.w1), -1, -1).contiguous()
+        x = F.relu(torch.baddbmm(self.b1, x, self.w1))
+        x = F.relu(torch.baddbmm(self.b2, x, self.w2))
+        return (x * self.w3[:, None]).sum(-1) + self.b3
+
+
 def timed(fn, calls):
     start = time.perf_counter()
     for _ in range(calls):
@@ -67,64 +84,43 @@ def main(argv=None):
         print(f"{name}: {b:.3f} -> {a:.3f} ms", file=sys.stderr, flush=True)
 
     for n in (2, 5):  # critic update: forward and backward of every member
-        separate = [mlp_critic() for _ in range(n)]
-        ensemble = td3.QEnsemble(OBS, ACT, num_q=n)
+        ensemble, batched = td3.QEnsemble(OBS, ACT, num_q=n), BatchedEnsemble(n)
 
-        def per_critic(separate=separate):
-            sum(F.mse_loss(q(torch.cat([obs, actions], 1)).view(-1), y) for q in separate).backward()
-
-        def batched(ensemble=ensemble):
+        def loop(ensemble=ensemble):
             ((ensemble(obs, actions) - y) ** 2).mean(1).sum().backward()
 
-        row(f"critic forward+backward, {n} critics: one module each -> one batched ensemble", 1, per_critic, batched)
+        def hand_batched(batched=batched):
+            ((batched(obs, actions) - y) ** 2).mean(1).sum().backward()
+
+        row(
+            f"critic forward+backward, {n} critics: a loop over QNetworks (kept) -> one hand-batched ensemble",
+            1,
+            loop,
+            hand_batched,
+        )
 
     ensemble = td3.QEnsemble(OBS, ACT, num_q=2)
 
-    def matmul_head():  # the output layer as a batched matmul with one output column
-        w1, b1, w2, b2, w3, b3 = ensemble.parameters()
-        x = F.relu(torch.baddbmm(b1, torch.cat([obs, actions], 1).expand(2, -1, -1), w1))
-        x = F.relu(torch.baddbmm(b2, x, w2))
-        torch.baddbmm(b3.unsqueeze(-1), x, w3.transpose(1, 2)).squeeze(-1).sum().backward()
-
-    row(
-        "critic output layer: baddbmm with one column -> multiply-and-sum",
-        1,
-        matmul_head,
-        lambda: ensemble(obs, actions).sum().backward(),
-    )
-
-    row(
-        "critic forward+backward, 2 critics: weights indexed with a full slice -> used as they are",
-        1,
-        lambda: ((ensemble(obs, actions, members=slice(None)) - y) ** 2).mean(1).sum().backward(),
-        lambda: ((ensemble(obs, actions) - y) ** 2).mean(1).sum().backward(),
-        "a slice's backward copies each weight's gradient",
-    )
-
-    def actor_loss(detach):
-        loss = -ensemble(obs, actor(obs), members=slice(0, 1), detach_params=detach).mean()
-        loss.backward()
+    def actor_loss(frozen):
+        ensemble.requires_grad_(not frozen)
+        (-ensemble[0](obs, actor(obs)).mean()).backward()
+        ensemble.requires_grad_(True)
         ensemble.zero_grad(set_to_none=True)
 
     row(
-        "TD3 actor loss: gradients into the critic's weights too -> into the actions only",
+        "TD3 actor loss: gradients into the critic's weights too -> the critics frozen (requires_grad off)",
         0.5,
         lambda: actor_loss(False),
         lambda: actor_loss(True),
     )
 
-    ensemble5 = oparl.QEnsemble(OBS, ACT, num_q=5)
+    ensemble5 = oparl.QEnsemble(OBS, ACT, num_q=5).requires_grad_(False)
 
     def two_passes():
-        (
-            -ensemble5(obs, actor(obs), detach_params=True).min(0).values.mean()
-            - ensemble5(obs, optimistic(obs), detach_params=True).max(0).values.mean()
-        ).backward()
+        (-ensemble5(obs, actor(obs)).min(0).values.mean() - ensemble5(obs, optimistic(obs)).max(0).values.mean()).backward()
 
     def one_pass():
-        q_pes, q_opt = ensemble5(torch.cat([obs, obs]), torch.cat([actor(obs), optimistic(obs)]), detach_params=True).chunk(
-            2, dim=1
-        )
+        q_pes, q_opt = ensemble5(torch.cat([obs, obs]), torch.cat([actor(obs), optimistic(obs)])).chunk(2, dim=1)
         (-q_pes.min(0).values.mean() - q_opt.max(0).values.mean()).backward()
 
     row("OPARL's two actor losses: two ensemble passes -> one pass on both batches", 0.5, two_passes, one_pass)

@@ -52,7 +52,7 @@ PHASES = [
     ("acting", None, "optimistic_action"),
     ("storing the transition", "rl_utils.buffers:ReplayBuffer", "add"),
     ("replay sampling", "rl_utils.buffers:ReplayBuffer", "sample"),
-    ("update: graph replay and input copies", "rl_utils.numerics:CudaGraph", "__call__"),
+    ("update: graph replay and input copies", "rl_utils.gpu:CudaGraph", "__call__"),
     ("update: TD target", None, "td_target"),
     ("update: critic", None, "critic_loss"),
     ("update: actor(s)", None, "policy_loss"),
@@ -62,7 +62,7 @@ PHASES = [
     ("logging", "rl_utils.run:Run", "log"),
     ("checkpoints", "rl_utils.checkpoints", "write_checkpoints"),
     ("checkpoints", "rl_utils.checkpoints", "snapshot"),  # the state a checkpoint holds, taken before it is written
-    ("checkpoints", "rl_utils.checkpoints", "split_seeds"),
+    ("checkpoints", "rl_utils.seeds", "split_seeds"),
     ("evaluation", None, "evaluate"),
 ]
 # a loss's optimizer step, the script's optimize(loss, name, *optimizers), is charged to that loss's update, by name

@@ -1,0 +1,94 @@
+"""What a process's runs report: each run's TensorBoard log (and Weights and Biases with --track), the progress bar,
+the evaluations (recorded for the checkpoints too) and the training speed."""
+
+import math
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
+
+from rl_utils.errors import fail
+from rl_utils.numerics import NonFiniteError
+
+
+class Logs:
+    """TensorBoard, one writer per run folder (a resumed run hides what the killed process logged after its
+    checkpoint), Weights and Biases with --track, and a progress bar on a terminal (in a log file the per-evaluation
+    lines say the same). Each run's hyperparameters table gives its own seed."""
+
+    def __init__(self, args, run_dirs: list, seeds: list, start_step: int, eval_returns: list, device: torch.device):
+        self.seeds, self.eval_returns = seeds, eval_returns
+        names = [os.path.basename(run_dir) for run_dir in run_dirs]
+        if args.track:
+            try:
+                import wandb
+            except ImportError:
+                fail("--track needs Weights and Biases: pip install wandb")
+            wandb.init(
+                project=args.wandb_project_name,
+                entity=args.wandb_entity,
+                sync_tensorboard=True,
+                config=vars(args),
+                name=names[0],
+                monitor_gym=True,
+                save_code=True,
+            )
+        self.writers = [SummaryWriter(d, purge_step=start_step if args.resume else None) for d in run_dirs]
+        for seed, writer in zip(seeds, self.writers if not args.resume else []):
+            table = "\n".join(f"|{key}|{value}|" for key, value in {**vars(args), "seed": seed}.items())
+            writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+        self.pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
+        resumed = f", resumed at step {start_step}" if args.resume else ""
+        tqdm.write(f"{', '.join(names)}: {args.env_id} on {device}, logging to {', '.join(run_dirs)}{resumed}")
+        self.sps_time, self.sps_step, self.sps = time.time(), start_step, 0.0
+
+    def evaluate(self, step: int, returns: np.ndarray):
+        """Records each seed's evaluation returns [num_seeds, episodes]: in its TensorBoard run, its checkpoints and a
+        line. The time it took does not count in the training speed."""
+        for k, (writer, seed_returns) in enumerate(zip(self.writers, returns)):
+            self.eval_returns[k].append((step, float(seed_returns.mean())))
+            writer.add_scalar("eval/episodic_return", seed_returns.mean(), step)
+            label = f"seed {self.seeds[k]} " if len(self.seeds) > 1 else ""
+            tqdm.write(
+                f"{label}step {step}: return {seed_returns.mean():.1f} +- {seed_returns.std():.1f}, {self.sps:.0f} steps/s"
+            )
+        self.pbar.set_postfix(eval_return=f"{returns.mean():.1f}")
+        self.sps_time = time.time()
+
+    def log(self, logs: dict, step: int):
+        """Writes {tag: one value per seed (a tensor [num_seeds]), or one for all (a number)}, each seed's into its
+        run; a non-finite value stops the run (where --cudagraphs catches a NaN)."""
+        n = len(self.writers)
+        values = {tag: torch.as_tensor(value).reshape(-1).broadcast_to(n).tolist() for tag, value in logs.items()}
+        for tag, seed_values in values.items():
+            if not all(math.isfinite(value) for value in seed_values):
+                raise NonFiniteError(tag.split("/")[-1])
+        for tag, seed_values in values.items():
+            for writer, value in zip(self.writers, seed_values):
+                writer.add_scalar(tag, value, step)
+
+    def log_episodes(self, infos, step: int):
+        """Each finished training episode's return and length (SeedEnvs' infos, or a list of one env's info)."""
+        episodes = infos["episode"] if isinstance(infos, dict) else [info.get("episode") for info in infos]
+        for writer, episode in zip(self.writers, episodes):
+            if episode is not None:
+                writer.add_scalar("charts/episodic_return", episode["r"], step)
+                writer.add_scalar("charts/episodic_length", episode["l"], step)
+
+    def step(self, step: int):
+        """After step `step`: the training speed every 1000 steps (evaluations excluded) and the progress bar."""
+        if (step + 1) % 1000 == 0:
+            self.sps = (step + 1 - self.sps_step) / (time.time() - self.sps_time)
+            for writer in self.writers:
+                writer.add_scalar("charts/SPS", self.sps, step)
+            self.sps_time, self.sps_step = time.time(), step + 1
+        self.pbar.update(1)
+
+    def close(self):
+        self.pbar.close()
+        for writer in self.writers:
+            writer.close()
