@@ -27,14 +27,14 @@ from conftest import (
 from rl_utils import checkpoints, make_env
 
 
-# (total steps, first step of learning, checkpoint frequency) of the kill-and-resume runs, by the phase in which the
-# killed run's checkpoint falls. "learning": at step 500, where learning starts (the on-policy scripts: the first
-# episode end from there), mid-episode where the env is Hopper's. "random": at step 1000, before learning starts at
-# 1200; the resumed run then acts at random from the action space's restored generator for its first steps.
-# "trained": at step 1000, after 500 training steps, so that the checkpoint holds optimizer states (Adam's step
-# counts and moments) that a resume must restore: at "learning"'s checkpoint no optimizer of an off-policy script
-# has stepped yet.
-PHASES = {"learning": (1500, 500, 500), "random": (2000, 1200, 1000), "trained": (2000, 500, 1000)}
+# (total steps, first step of learning, checkpoint frequency) of the kill-and-resume runs, by where the kills fall.
+# "learning": one kill, after the checkpoint at step 500, where learning starts (the on-policy scripts: the first
+# episode end from there), mid-episode where the env is Hopper's. "random+trained": two kills of one run, against one
+# uninterrupted run: after the checkpoint at step 1000, before learning starts at 1200, so that the resumed run acts
+# at random from the action space's restored generator for its first steps; then, once resumed, after the checkpoint
+# at step 2000, 800 training steps on, so that the checkpoint holds optimizer states (Adam's step counts and moments)
+# that the second resume must restore: at "learning"'s checkpoint no optimizer of an off-policy script has stepped.
+PHASES = {"learning": (1500, 500, 500), "random+trained": (2500, 1200, 1000)}
 # the on-policy scripts run ~1000 steps/s: a longer run keeps the kill (up to 1 s after the checkpoint) before its end
 ON_POLICY_STEPS = 3000
 
@@ -52,9 +52,31 @@ def short(script, phase="learning"):
     )
 
 
-def start(script, cwd, *flags):
-    log = open(os.path.join(cwd, f"{flags[flags.index('--run-name') + 1]}.log"), "w")
-    return subprocess.Popen(script_command(script, *flags), cwd=cwd, stdout=log, stderr=subprocess.STDOUT)
+def start(script, cwd, *flags, log=None):
+    """The script in a process of its own, its output unbuffered into a log (a killed process loses no line)."""
+    log = open(os.path.join(cwd, log or f"{flags[flags.index('--run-name') + 1]}.log"), "w")
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(script_command(script, *flags), cwd=cwd, stdout=log, stderr=subprocess.STDOUT, env=env)
+
+
+def identity(path) -> tuple:
+    """Which file is at `path` now: a checkpoint is replaced whole (a new file renamed over the old)."""
+    stat = os.stat(path)
+    return stat.st_ino, stat.st_mtime_ns
+
+
+def kill_after_a_checkpoint(process, checkpoint, log, after=None, within=1.0) -> dict:
+    """SIGKILL `process` at an arbitrary moment (mid-step, mid-evaluation or mid-write) up to `within` seconds after
+    it writes a checkpoint (a file other than the one `after` identifies); the checkpoint the kill leaves."""
+    deadline = time.time() + 240
+    while (not checkpoint.exists() or identity(checkpoint) == after) and process.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert checkpoint.exists() and identity(checkpoint) != after, log.read_text()
+    time.sleep(random.uniform(0.0, within))
+    process.send_signal(signal.SIGKILL)
+    # not vacuous: the signal ended the run, before its last step (a finished run would resume as a no-op)
+    assert process.wait() == -signal.SIGKILL, "the run ended before the kill: the comparison would test nothing"
+    return torch.load(checkpoint, weights_only=True)
 
 
 def final_actor(run_dir, script):
@@ -63,17 +85,13 @@ def final_actor(run_dir, script):
 
 # OPARL is resumed on a MuJoCo and a DMC task, EBD on a DMC task (a DMC episode is rebuilt by rl_utils' env layer,
 # the same for every script: one script of each kind checks it); the others on Hopper-v4; every off-policy script
-# also from a checkpoint taken in its random phase (on Hopper, whose random episodes are short)
+# twice in one run on Hopper, whose random episodes are short: in its random phase and once its optimizers have stepped
 KILL_CASES = [
-    ("td3", "Hopper-v4", "trained"),  # its checkpoint holds optimizers that have stepped: a resume that drops them fails
-    ("oparl", "Hopper-v4", "learning"),
     ("oparl", "dm_control/cartpole-swingup-v0", "learning"),
-    ("ppo", "Hopper-v4", "learning"),
-    ("rnd", "Hopper-v4", "learning"),
     ("ebd", "dm_control/cartpole-swingup-v0", "learning"),
 ]
-KILL_CASES += [(script, "Hopper-v4", "learning") for script in SCRIPTS if script not in {s for s, _, _ in KILL_CASES}]
-KILL_CASES += [(script, "Hopper-v4", "random") for script in OFF_POLICY]
+KILL_CASES += [(script, "Hopper-v4", "random+trained") for script in OFF_POLICY]
+KILL_CASES += [(script, "Hopper-v4", "learning") for script in ON_POLICY if script not in {s for s, _, _ in KILL_CASES}]
 # the recorded updates of --cudagraphs resume exactly too (the graphs are recorded anew after a resume)
 GRAPH_KILL_CASES = [
     pytest.param(s, "Hopper-v4", "learning", "--cudagraphs", marks=needs_cuda, id=f"{s}-cudagraphs") for s in OFF_POLICY
@@ -91,23 +109,22 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
     full = start(script, tmp_path, *flags, "--run-name", "full")
     killed = start(script, tmp_path, *flags, "--run-name", "killed", "--checkpoint-frequency", str(checkpoint_frequency))
     checkpoint = tmp_path / "runs" / "killed" / "checkpoint.pt"
-    deadline = time.time() + 240
-    while not checkpoint.exists() and killed.poll() is None and time.time() < deadline:
-        time.sleep(0.05)
-    assert checkpoint.exists(), (tmp_path / "killed.log").read_text()
-    time.sleep(random.uniform(0.0, 1.0))  # an arbitrary moment: mid-step, mid-evaluation or mid-write
-    killed.send_signal(signal.SIGKILL)
-    # not vacuous: the signal ended the run, before its last step (a finished run would resume as a no-op)
-    assert killed.wait() == -signal.SIGKILL, "the run ended before the kill: the comparison would test nothing"
-    state = torch.load(checkpoint, weights_only=True)
-    killed_at = state["global_step"]
-    assert killed_at < total
-    if phase == "random":
-        assert checkpoint_frequency <= killed_at < learning_starts  # the random phase goes on after the resume
-    if phase == "trained":  # every optimizer has stepped (the actor's every --policy-frequency steps) many times
-        for name, optimizer in state["optimizers"].items():
+    if phase == "random+trained":
+        state = kill_after_a_checkpoint(killed, checkpoint, tmp_path / "killed.log", within=0.5)
+        # the random phase goes on after the resume (the next checkpoint would fall after learning starts)
+        assert checkpoint_frequency <= state["global_step"] < learning_starts
+        written = identity(checkpoint)
+        killed = start(script, tmp_path, "--resume", "runs/killed", "--save-model", log="resumed.log")
+        state = kill_after_a_checkpoint(killed, checkpoint, tmp_path / "resumed.log", after=written)
+        assert f"resumed at step {checkpoint_frequency}" in (tmp_path / "resumed.log").read_text()
+        assert learning_starts < state["global_step"] < total
+        for name, optimizer in state["optimizers"].items():  # every one has stepped (the actor's every 2nd step) often
             steps = [param_state["step"].item() for param_state in optimizer["state"].values()]
             assert steps and min(steps) >= 200, (name, steps)
+    else:
+        state = kill_after_a_checkpoint(killed, checkpoint, tmp_path / "killed.log")
+    killed_at = state["global_step"]
+    assert killed_at < total
     resumed = subprocess.run(
         script_command(script, "--resume", "runs/killed", "--save-model"),
         cwd=tmp_path,
