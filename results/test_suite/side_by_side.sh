@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Two short TD3 runs side by side against one alone, under each thread setting: with more threads than cores,
 # OpenMP's default (spinning) wait is what makes the side-by-side pair slow. Run from the repository's root with
-# its virtual environment active: bash results/test_suite/side_by_side.sh
+# its virtual environment active: bash results/test_suite/side_by_side.sh (TRIES=3 tries of each, by default)
 set -euo pipefail
 repo=$(pwd)
 work=$(mktemp -d)
@@ -12,10 +12,12 @@ run() {
 }
 seconds() { local start=$(date +%s.%N); "$@"; echo "$(date +%s.%N) - $start" | bc; }
 pair() { run "$1a" & run "$1b" & wait; }
-echo "setting,alone_s,two_side_by_side_s"
-for setting in "OMP_NUM_THREADS=1" "OMP_NUM_THREADS=2" "OMP_NUM_THREADS=2 OMP_WAIT_POLICY=PASSIVE"; do
-  export OMP_NUM_THREADS=1; unset OMP_WAIT_POLICY
-  export $setting
-  name=$(echo "$setting" | tr ' =' '__')
-  echo "$setting,$(seconds run "alone_$name"),$(seconds pair "pair_$name")"
+echo "try,setting,alone_s,two_side_by_side_s"
+for try in $(seq "${TRIES:-3}"); do
+  for setting in "OMP_NUM_THREADS=1" "OMP_NUM_THREADS=2" "OMP_NUM_THREADS=2 OMP_WAIT_POLICY=PASSIVE"; do
+    export OMP_NUM_THREADS=1; unset OMP_WAIT_POLICY
+    export $setting
+    name=$(echo "$setting" | tr ' =' '__')_$try
+    echo "$try,$setting,$(seconds run "alone_$name"),$(seconds pair "pair_$name")"
+  done
 done
