@@ -58,6 +58,7 @@ NOT_ALGORITHM = {
     "save_model",
     "cuda",
     "cudagraphs",  # replays the same update: a seed's --cudagraphs run learns as its eager one (tests/test_cudagraphs.py)
+    "num_seeds",  # a seed trained in a group runs the one-seed update (tests/test_many_seeds.py); benchmark.sh --gpu groups
     "torch_deterministic",
 }
 SMOOTHING = 10  # evaluations: 50k steps of a 1M-step run at one evaluation per 5000

@@ -220,6 +220,16 @@ def test_variants_of_one_script_are_told_apart(tmp_path):
     assert sorted({r.algo for r in runs}) == ["oparl (q_num=2)", "oparl (q_num=5)"]
 
 
+def test_a_seed_trained_in_a_group_counts_as_its_algorithm(tmp_path):
+    # benchmark.sh --gpu trains seeds in groups (--num-seeds 3) that a sweep sets beside one-seed CPU runs
+    root = str(tmp_path / "runs")
+    write_run(root, "td3_continuous_action", DMC_A, 1, [0, 100], num_seeds=1)
+    for seed in (2, 3):
+        write_run(root, "td3_continuous_action", DMC_A, seed, [0, 50], num_seeds=2)
+    runs = pr.read_tensorboard(root)
+    assert [r.algo for r in runs] == ["td3"] * 3
+
+
 def test_cut_short_runs_are_named_and_left_out_of_the_table(tmp_path, capsys):
     root = str(tmp_path / "runs")
     write_run(root, "td3_continuous_action", DMC_A, 1, [0, 10, 30])
