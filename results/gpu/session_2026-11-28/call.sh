@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The device calls of 2026-11-28, from the repository's root on the lent GPU machine (the device tool sets OUT):
-#     BUDGET=540 bash results/gpu/session_2026-11-28/call.sh     # every call; what is done already is skipped
+#     BUDGET=535 bash results/gpu/session_2026-11-28/call.sh     # a call's budget in seconds (the 2nd call: 320);
+#                                                                # what an earlier call did is skipped
 # 1. starts, in the background (setsid: it outlives the call), the 14 runs of 100k steps that fit one lease:
-#    issue 68's learning check (td3 seeds 2-3, oparl seeds 1-3, cartpole-swingup; td3 seed 1 finished on a CPU) and
-#    issue 67's critic comparison (oparl --critic-style td3, walker-run, cheetah-run, Ant-v4, seeds 1-3), both
+#    the QNetwork learning check (td3 seeds 2-3, oparl seeds 1-3, cartpole-swingup; td3 seed 1 finished on a CPU;
+#    results/qnetwork) and OPARL with TD3's critics (walker-run, cheetah-run, Ant-v4, seeds 1-3; results/critic_style), both
 #    with benchmark.sh --gpu; 2. the CUDA tests on the current code (first call only); 3. waits for the runs,
 #    copying their TensorBoard files to $OUT; 4. once they are done, the critics' speed before and after the
 #    QNetwork change (.before/: td3 and oparl of 5b9ba77 with their rl_utils, carried) with --cudagraphs.
