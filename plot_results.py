@@ -24,10 +24,14 @@ The statistics are rliable's ("Deep RL at the edge of the statistical precipice"
 with a fixed bootstrap seed: the same runs give byte-identical files.
   final_returns.csv         one row per run read (all of them, whatever --algos/--env-ids select):
                             algo, env_id, seed, steps, final_return
-  eval_series.csv           every evaluation of every run read: algo, env_id, seed, step, episodic_return
+  eval_series.csv           every evaluation of every run read: algo, env_id, seed, step, episodic_return (and
+                            seeds_per_process, where a run trained several seeds a process)
 
 An algorithm is named by its script (exp_name without `_continuous_action`); runs of one script with
-different hyperparameters (an ablation) get the differing flags appended, e.g. `oparl (q_num=2)`.
+different hyperparameters (an ablation) get the differing flags appended, e.g. `oparl (q_num=2)`. Flags that
+do not change what a run learns (NOT_ALGORITHM: --cuda, --cudagraphs, --num-seeds, ...) name nothing; table.md
+lists the runs that trained several seeds a process. A run found twice keeps its longer record, with a warning
+where the two records differ.
 """
 
 import argparse
@@ -58,7 +62,7 @@ NOT_ALGORITHM = {
     "save_model",
     "cuda",
     "cudagraphs",  # replays the same update: a seed's --cudagraphs run learns as its eager one (tests/test_cudagraphs.py)
-    "num_seeds",  # a seed trained in a group runs the one-seed update (tests/test_many_seeds.py); benchmark.sh --gpu groups
+    "num_seeds",  # a seed of a group runs the one-seed update (tests/test_many_seeds.py); kept as Run.seeds_per_process
     "torch_deterministic",
 }
 SMOOTHING = 10  # evaluations: 50k steps of a 1M-step run at one evaluation per 5000
@@ -84,6 +88,7 @@ class Run:
     steps: np.ndarray
     returns: np.ndarray
     source: str
+    seeds_per_process: int = 1  # the run's --num-seeds: the tables say which runs trained in a group
 
 
 def parse_hyperparameters(text: str) -> dict:
@@ -145,24 +150,36 @@ def read_tensorboard(root: str, finished_only: bool = False, tag: str = TAG) -> 
     if not found:
         fail(f"no run under {root} logged {tag}")
     names = algorithm_names(configs)
-    return [Run(name, p["env_id"], int(p["seed"]), steps, returns, d) for name, (p, steps, returns, d) in zip(names, found)]
+    return [
+        Run(name, p["env_id"], int(p["seed"]), steps, returns, d, int(p.get("num_seeds", 1)))
+        for name, (p, steps, returns, d) in zip(names, found)
+    ]
+
+
+def same_record(a: Run, b: Run) -> bool:
+    """Whether two records of a run agree wherever both have an evaluation (one may be longer: a resumed run)."""
+    common, ia, ib = np.intersect1d(a.steps, b.steps, return_indices=True)
+    return len(common) > 0 and np.allclose(a.returns[ia], b.returns[ib], atol=1e-3)
 
 
 def read_csv(path: str) -> list:
-    series = defaultdict(list)
+    series, group = defaultdict(list), {}
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
         missing = {"algo", "env_id", "seed", "step", "episodic_return"} - set(reader.fieldnames or [])
         if missing:
             fail(f"{path} lacks the column(s) {', '.join(sorted(missing))} (expected the eval_series.csv this script writes)")
         for row in reader:
-            series[(row["algo"], row["env_id"], int(row["seed"]))].append((int(row["step"]), float(row["episodic_return"])))
+            key = (row["algo"], row["env_id"], int(row["seed"]))
+            series[key].append((int(row["step"]), float(row["episodic_return"])))
+            group[key] = int(row.get("seeds_per_process") or 1)  # a column written only where a run trained in a group
     if not series:
         fail(f"{path} holds no evaluations")
     runs = []
     for (algo, env_id, seed), points in series.items():
         points.sort()
-        runs.append(Run(algo, env_id, seed, np.array([s for s, _ in points]), np.array([r for _, r in points]), path))
+        steps, returns = np.array([s for s, _ in points]), np.array([r for _, r in points])
+        runs.append(Run(algo, env_id, seed, steps, returns, path, group[(algo, env_id, seed)]))
     return runs
 
 
@@ -461,6 +478,17 @@ def write_table(
         f"Final evaluation return (mean +- sample std over seeds, ddof 1; seeds per cell in parentheses) at "
         f"{' / '.join(map(str, budgets))} steps."
     ]
+    grouped = sorted((a, e) for (a, e), group in complete.items() if any(r.seeds_per_process > 1 for r in group))
+    if grouped:
+        lines.append(
+            "Trained several seeds a process (`--num-seeds`), the others one: "
+            + "; ".join(
+                f"{a} on {e.removeprefix('dm_control/')} seeds "
+                + ", ".join(f"{r.seed} ({r.seeds_per_process})" for r in complete[(a, e)] if r.seeds_per_process > 1)
+                for a, e in grouped
+            )
+            + " (seeds a process in parentheses)."
+        )
     if paper:
         lines.append(
             "Columns marked *paper* are the paper's Table 1 (1M steps, +- its standard deviation over 10 trials), copied for "
@@ -589,9 +617,13 @@ def write_csvs(runs: list, series_path: str, final_path: str):
     runs = sorted(runs, key=lambda r: (r.algo, r.env_id, r.seed))
     with open(series_path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["algo", "env_id", "seed", "step", "episodic_return"])
+        grouped = any(r.seeds_per_process > 1 for r in runs)  # the column only where a run trained in a group
+        writer.writerow(["algo", "env_id", "seed", "step", "episodic_return", *(["seeds_per_process"] if grouped else [])])
         for r in runs:
-            writer.writerows((r.algo, r.env_id, r.seed, int(s), f"{v:.4f}") for s, v in zip(r.steps, r.returns))
+            writer.writerows(
+                (r.algo, r.env_id, r.seed, int(s), f"{v:.4f}", *([r.seeds_per_process] if grouped else []))
+                for s, v in zip(r.steps, r.returns)
+            )
     with open(final_path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["algo", "env_id", "seed", "steps", "final_return"])
@@ -603,7 +635,7 @@ def main(argv=None):
     parser.add_argument(
         "sources",
         nargs="+",
-        help="folders of TensorBoard runs (e.g. runs) and/or eval_series.csv files written by this script; a run found twice keeps its longer record",
+        help="folders of TensorBoard runs (e.g. runs) and/or eval_series.csv files written by this script; a run found twice keeps its longer record (a warning if they differ)",
     )
     parser.add_argument("--out", default="results", help="output folder")
     parser.add_argument("--prefix", default="", help="prefix of every output file name, e.g. ablation_")
@@ -650,6 +682,11 @@ def main(argv=None):
         )
         for run in found:
             key = (run.algo, run.env_id, run.seed)
+            if key in merged and not same_record(run, merged[key]):
+                kept = max(run, merged[key], key=lambda r: len(r.steps))
+                warn(
+                    f"two different runs of {run.algo} on {run.env_id} seed {run.seed} ({merged[key].source}, {run.source}): kept {kept.source}"
+                )
             if key not in merged or len(run.steps) > len(merged[key].steps):
                 merged[key] = run
     if not merged:

@@ -220,14 +220,43 @@ def test_variants_of_one_script_are_told_apart(tmp_path):
     assert sorted({r.algo for r in runs}) == ["oparl (q_num=2)", "oparl (q_num=5)"]
 
 
-def test_a_seed_trained_in_a_group_counts_as_its_algorithm(tmp_path):
-    # benchmark.sh --gpu trains seeds in groups (--num-seeds 3) that a sweep sets beside one-seed CPU runs
+def test_a_seed_trained_in_a_group_counts_as_its_algorithm_and_the_table_says_so(tmp_path):
+    # benchmark.sh --gpu trains seeds in groups (--num-seeds 2) that a sweep sets beside one-seed CPU runs
     root = str(tmp_path / "runs")
     write_run(root, "td3_continuous_action", DMC_A, 1, [0, 100], num_seeds=1)
     for seed in (2, 3):
         write_run(root, "td3_continuous_action", DMC_A, seed, [0, 50], num_seeds=2)
     runs = pr.read_tensorboard(root)
     assert [r.algo for r in runs] == ["td3"] * 3
+    said = "Trained several seeds a process (`--num-seeds`), the others one: td3 on cartpole-swingup-v0 seeds 2 (2), 3 (2)"
+    plot([root, "--no-paper", "--out", str(tmp_path / "out")])
+    assert said in open(tmp_path / "out" / "table.md").read()
+    # the CSV keeps it, so a folder regenerated from its eval_series.csv says it too
+    plot([str(tmp_path / "out" / "eval_series.csv"), "--no-paper", "--out", str(tmp_path / "again")])
+    assert said in open(tmp_path / "again" / "table.md").read()
+    # and a table of one-seed runs neither says it nor gains the column
+    one = str(tmp_path / "one")
+    write_run(one, "td3_continuous_action", DMC_A, 1, [0, 100], num_seeds=1)
+    plot([one, "--no-paper", "--out", str(tmp_path / "single")])
+    assert "several seeds" not in open(tmp_path / "single" / "table.md").read()
+    assert open(tmp_path / "single" / "eval_series.csv").readline().strip() == "algo,env_id,seed,step,episodic_return"
+
+
+def test_two_different_records_of_one_run_are_warned_about(tmp_path, capsys):
+    root = str(tmp_path / "runs")
+    write_run(root, "td3_continuous_action", DMC_A, 1, [0, 100], num_seeds=1)
+    write_run(root, "td3_continuous_action", DMC_A, 1, [0, 900], num_seeds=3)  # seed 1 again, in a group
+    plot([root, "--no-paper", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert "warning: two different runs of td3 on dm_control/cartpole-swingup-v0 seed 1" in err
+    # the same run read twice (its CSV and its folder, the folder's record longer: a resumed run) is no warning
+    one = str(tmp_path / "one")
+    write_run(one, "td3_continuous_action", DMC_A, 1, [0, 100])
+    plot([one, "--no-paper", "--out", str(tmp_path / "short")])
+    write_run(one, "td3_continuous_action", DMC_A, 1, [0, 100, 300])  # the same folder, two more evaluations
+    plot([str(tmp_path / "short" / "eval_series.csv"), one, "--no-paper", "--out", str(tmp_path / "long")])
+    assert "two different runs" not in capsys.readouterr().err
+    assert open(tmp_path / "long" / "final_returns.csv").read().splitlines()[1].endswith(",10000,300.0000")
 
 
 def test_cut_short_runs_are_named_and_left_out_of_the_table(tmp_path, capsys):
