@@ -85,7 +85,7 @@ class Args:
     reset_frequency: int = 20000
     """copy the pessimistic actor into the optimistic actor every this many training iterations (0: never)"""
     critic_style: Literal["release", "td3"] = "release"
-    """release: SiLU critics, truncated-normal weights, zero biases (the authors' code); td3: ReLU, nn.Linear's init"""
+    """td3: ReLU, nn.Linear's init (TD3's); release: SiLU, truncated-normal weights, zero biases (OPARL's release)"""
 
     # Evaluation (the metric the paper reports)
     eval_frequency: int = 5000

@@ -1,13 +1,14 @@
 # TD3 (Fujimoto et al. 2018, https://arxiv.org/abs/1802.09477) in CleanRL's single-file style.
 # Differences from CleanRL's td3_continuous_action.py: the twin critics are one module (QEnsemble),
 # the reported metric is a deterministic evaluation of the actor every --eval-frequency steps,
-# DeepMind Control tasks run through shimmy, and every piece is importable for tests.
+# DeepMind Control tasks run through shimmy, every piece is importable for tests, and --critic-style release
+# trains OPARL's release's critics (SiLU) to tell OPARL's method from its critics.
 # The machinery (checks, envs, logging, checkpoints, --num-seeds, --cudagraphs) is imported from rl_utils.
 import functools
 import os
 import random
 from dataclasses import dataclass
-from typing import Optional
+from typing import Literal, Optional
 
 import gymnasium as gym
 import numpy as np
@@ -74,6 +75,8 @@ class Args:
     """the frequency of training policy (delayed)"""
     noise_clip: float = 0.5
     """noise clip parameter of the Target Policy Smoothing Regularization"""
+    critic_style: Literal["release", "td3"] = "td3"
+    """td3: ReLU, nn.Linear's init (TD3's); release: SiLU, truncated-normal weights, zero biases (OPARL's release)"""
 
     # Evaluation (the metric the paper reports)
     eval_frequency: int = 5000
@@ -88,24 +91,29 @@ class Args:
 
 # ALGO LOGIC: initialize agent here:
 class QNetwork(nn.Module):
-    def __init__(self, obs_dim: int, action_dim: int):
+    def __init__(self, obs_dim: int, action_dim: int, style: str = "td3"):
         super().__init__()
         self.fc1 = nn.Linear(obs_dim + action_dim, 256)
         self.fc2 = nn.Linear(256, 256)
         self.fc3 = nn.Linear(256, 1)
+        self.activation = {"release": F.silu, "td3": F.relu}[style]
+        if style == "release":  # the release's init: zero biases; weights normal, std 1/(2 sqrt(fan_in)), |w| <= 2
+            for layer in (self.fc1, self.fc2, self.fc3):
+                nn.init.trunc_normal_(layer.weight, std=0.5 * layer.in_features**-0.5)
+                nn.init.zeros_(layer.bias)
 
     def forward(self, x, a):
         x = torch.cat([x, a], -1)
-        x = F.relu(self.fc1(x))
-        x = F.relu(self.fc2(x))
+        x = self.activation(self.fc1(x))
+        x = self.activation(self.fc2(x))
         return self.fc3(x).squeeze(-1)
 
 
 class QEnsemble(nn.ModuleList):
     """num_q independent QNetworks (TD3's twin critics: 2); called, every critic's Q-values [num_q, batch]."""
 
-    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2):
-        super().__init__(QNetwork(obs_dim, action_dim) for _ in range(num_q))
+    def __init__(self, obs_dim: int, action_dim: int, num_q: int = 2, style: str = "td3"):
+        super().__init__(QNetwork(obs_dim, action_dim, style) for _ in range(num_q))
 
     def forward(self, obs, actions):
         return torch.stack([qf(obs, actions) for qf in self])
@@ -213,9 +221,9 @@ def main(args: Args):
 
     def networks():  # one seed's
         actor = Actor(obs_dim, envs.action_space)
-        qf = QEnsemble(obs_dim, action_dim, num_q=2)
+        qf = QEnsemble(obs_dim, action_dim, 2, args.critic_style)
         target_actor = Actor(obs_dim, envs.action_space)
-        qf_target = QEnsemble(obs_dim, action_dim, num_q=2)
+        qf_target = QEnsemble(obs_dim, action_dim, 2, args.critic_style)
         target_actor.load_state_dict(actor.state_dict())
         qf_target.load_state_dict(qf.state_dict())
         return actor, qf, target_actor, qf_target
