@@ -91,7 +91,7 @@ class Args:
 
 # ALGO LOGIC: initialize agent here:
 class QNetwork(nn.Module):
-    def __init__(self, obs_dim: int, action_dim: int, style: str = "td3"):
+    def __init__(self, obs_dim: int, action_dim: int, style: str):
         super().__init__()
         self.fc1 = nn.Linear(obs_dim + action_dim, 256)
         self.fc2 = nn.Linear(256, 256)

@@ -10,7 +10,6 @@ import torch.nn.functional as F
 import td3_continuous_action as td3
 from conftest import assert_ensemble_is_independent_mlps, small_args
 from rl_utils import Batch, ReplayBuffer
-from rl_utils.numerics import NonFiniteError
 
 OBS_DIM, ACTION_DIM = 4, 2
 SPACE = gym.spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 4.0], np.float32))
@@ -79,26 +78,34 @@ def test_replay_buffer_draws_each_seeds_batch_from_its_own_transitions():
     assert not torch.equal(batch.observations[0] % 100, batch.observations[1] % 100)  # indices drawn per seed
 
 
-def test_q_ensemble_members_are_independent_mlps():
-    qf = td3.QEnsemble(OBS_DIM, ACTION_DIM, num_q=3)
-    obs, actions, q = assert_ensemble_is_independent_mlps(qf, OBS_DIM, ACTION_DIM, F.relu)
+@pytest.mark.parametrize("style, activation", [("td3", F.relu), ("release", F.silu)])
+def test_q_ensemble_members_are_independent_mlps(style, activation):
+    qf = td3.QEnsemble(OBS_DIM, ACTION_DIM, num_q=3, style=style)
+    obs, actions, q = assert_ensemble_is_independent_mlps(qf, OBS_DIM, ACTION_DIM, activation)
     torch.testing.assert_close(qf[0](obs, actions), q[0])  # a critic alone, as TD3's actor loss uses the first
 
 
 def test_critic_style_release_trains_oparls_critics_and_the_default_draws_as_before(tmp_path, monkeypatch):
-    """--critic-style release: the release's critics in TD3 (SiLU, truncated-normal weights, zero biases), so that
-    OPARL's method can be told from its critics; the default builds the same critics from the same draws as before."""
+    """--critic-style release: OPARL's critics in TD3 (the same draws and function as oparl's QEnsemble), so that
+    OPARL's method can be told from its critics; the default draws CleanRL's critics as plain nn.Linear layers do."""
     torch.manual_seed(0)
-    plain = [td3.QNetwork(300, 20) for _ in range(2)]  # the critics as built before the flag
+    plain = [[torch.nn.Linear(320, 256), torch.nn.Linear(256, 256), torch.nn.Linear(256, 1)] for _ in range(2)]
     torch.manual_seed(0)
     default = td3.QEnsemble(300, 20)
-    assert all(torch.equal(a, b) for net, c in zip(plain, default) for a, b in zip(net.parameters(), c.parameters()))
-    assert all(critic.activation is F.relu for critic in default)
+    for layers, critic in zip(plain, default):
+        for layer, fc in zip(layers, (critic.fc1, critic.fc2, critic.fc3)):
+            assert torch.equal(layer.weight, fc.weight) and torch.equal(layer.bias, fc.bias)
+    import oparl_continuous_action as oparl
+
+    torch.manual_seed(1)
     release = td3.QEnsemble(300, 20, style="release")
-    assert all(critic.activation is F.silu for critic in release)
-    assert torch.stack([c.fc1.weight for c in release]).std().item() == pytest.approx(0.5 / 320**0.5, rel=0.05)
-    assert all(torch.equal(layer.bias, torch.zeros_like(layer.bias)) for c in release for layer in (c.fc1, c.fc2, c.fc3))
-    monkeypatch.chdir(tmp_path)  # and the flag reaches a run's critics
+    torch.manual_seed(1)
+    oparls = oparl.QEnsemble(300, 20, num_q=2, style="release")
+    assert all(torch.equal(a, b) for a, b in zip(release.parameters(), oparls.parameters()))
+    obs, actions = torch.randn(16, 300), torch.randn(16, 20)
+    assert torch.equal(release(obs, actions), oparls(obs, actions))
+    assert torch.stack([c.fc2.weight for c in release]).std().item() == pytest.approx(0.5 / 256**0.5, rel=0.05)
+    monkeypatch.chdir(tmp_path)  # and the flag reaches a run's critics, online and target
     flags = dict(env_id="Pendulum-v1", total_timesteps=300, learning_starts=200, batch_size=32, eval_frequency=300)
     result = td3.main(small_args(td3, critic_style="release", **flags))
     assert all(critic.activation is F.silu for critic in [*result["qf"], *result["qf_target"]])
