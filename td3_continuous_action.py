@@ -1,8 +1,7 @@
 # TD3 (Fujimoto et al. 2018, https://arxiv.org/abs/1802.09477) in CleanRL's single-file style.
-# Differences from CleanRL's td3_continuous_action.py: the twin critics are one module (QEnsemble),
-# the reported metric is a deterministic evaluation of the actor every --eval-frequency steps,
-# DeepMind Control tasks run through shimmy, every piece is importable for tests, and --critic-style release
-# trains OPARL's release's critics (SiLU) to tell OPARL's method from its critics.
+# Differences from CleanRL's td3_continuous_action.py: the twin critics are one module (QEnsemble), OPARL's release's
+# critics with --critic-style release; the reported metric is a deterministic evaluation of the actor every --eval-frequency
+# steps; DeepMind Control tasks run through shimmy; every piece is importable for tests.
 # The machinery (checks, envs, logging, checkpoints, --num-seeds, --cudagraphs) is imported from rl_utils.
 import functools
 import os
