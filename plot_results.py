@@ -682,13 +682,13 @@ def main(argv=None):
         )
         for run in found:
             key = (run.algo, run.env_id, run.seed)
-            if key in merged and not same_record(run, merged[key]):
-                kept = max(run, merged[key], key=lambda r: len(r.steps))
-                warn(
-                    f"two different runs of {run.algo} on {run.env_id} seed {run.seed} ({merged[key].source}, {run.source}): kept {kept.source}"
-                )
-            if key not in merged or len(run.steps) > len(merged[key].steps):
-                merged[key] = run
+            earlier = merged.setdefault(key, run)
+            if earlier is not run:  # found twice: the longer record stays
+                merged[key] = run if len(run.steps) > len(earlier.steps) else earlier
+                if not same_record(run, earlier):
+                    warn(
+                        f"two different runs of {run.algo} on {run.env_id} seed {run.seed} ({earlier.source}, {run.source}): kept {merged[key].source}"
+                    )
     if not merged:
         fail(f"no finished run (with a DONE marker) in {', '.join(args.sources)}")
     runs = all_runs = list(merged.values())
