@@ -51,7 +51,7 @@ EXTRA_TAGS = {
 def test_short_run_writes_every_tag(script, env_id, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     module = load(script)
-    args = small_args(module, env_id=env_id, total_timesteps=1200, learning_starts=600, eval_frequency=500, run_name="run")
+    args = small_args(module, env_id=env_id, total_timesteps=1200, learning_starts=1000, eval_frequency=500, run_name="run")
     module.main(args)
     logged = scalars(os.path.join("runs", "run"))
     named = set(re.findall(r'"((?:losses|charts|eval)/\w+)"', source(script)))

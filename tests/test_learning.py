@@ -9,15 +9,16 @@ from conftest import SCRIPTS, declared, load, small_args
 
 pytestmark = pytest.mark.slow  # every test here trains or sweeps
 
-# script: (env, total steps, learning starts, return the final evaluation must beat). A script without an entry
-# is held to its base's budget (a fork of TD3 to TD3's) until it declares its own here.
+# script: (env, total steps, learning starts, batch size, return the final evaluation must beat). A script without
+# an entry is held to its base's budget (a fork of TD3 to TD3's) until it declares its own here. The off-policy
+# batches are below the default 256 to keep the checks short; TD3 at 64 missed the threshold on seed 2 (docs/tests.md).
 BUDGETS = {
-    "td3": ("Pendulum-v1", 7000, 1000, -400.0),
-    "oparl": ("Pendulum-v1", 7000, 1000, -400.0),
-    "sac": ("Pendulum-v1", 5000, 1000, -400.0),
-    "ppo": ("InvertedPendulum-v4", 30000, None, 500.0),  # PPO's default rollouts of 2048 steps; 1000 is solved
-    "rnd": ("InvertedPendulum-v4", 30000, None, 500.0),  # the bonus must not keep PPO from a task it solves
-    "ebd": ("InvertedPendulum-v4", 30000, None, 500.0),
+    "td3": ("Pendulum-v1", 7000, 1000, 128, -400.0),
+    "oparl": ("Pendulum-v1", 7000, 1000, 64, -400.0),
+    "sac": ("Pendulum-v1", 5000, 1000, 128, -400.0),
+    "ppo": ("InvertedPendulum-v4", 30000, None, None, 500.0),  # PPO's default rollouts of 2048 steps; 1000 is solved
+    "rnd": ("InvertedPendulum-v4", 30000, None, None, 500.0),  # the bonus must not keep PPO from a task it solves
+    "ebd": ("InvertedPendulum-v4", 30000, None, None, 500.0),
     # at 20 critic updates per step REDQ's check would take many minutes (see docs/tests.md)
     "redq": None,
 }
@@ -28,9 +29,9 @@ LEARNING_CHECKED = [s for s in SCRIPTS if declared(BUDGETS, s)]
 def test_learns_a_small_task(script, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     module = load(script)
-    env_id, total, learning_starts, threshold = declared(BUDGETS, script)
+    env_id, total, learning_starts, batch_size, threshold = declared(BUDGETS, script)
     quick = (
-        {"learning_starts": learning_starts, "batch_size": 128}  # half the default 256: ~40% shorter (docs/tests.md)
+        {"learning_starts": learning_starts, "batch_size": batch_size}
         if learning_starts
         else {"num_steps": 2048, "num_minibatches": 32, "update_epochs": 10}
     )

@@ -30,11 +30,11 @@ from rl_utils import checkpoints, make_env
 # (total steps, first step of learning, checkpoint frequency) of the kill-and-resume runs, by where the kills fall.
 # "learning": one kill, after the checkpoint at step 500, where learning starts (the on-policy scripts: the first
 # episode end from there), mid-episode where the env is Hopper's. "random+trained": two kills of one run, against one
-# uninterrupted run: after the checkpoint at step 1000, before learning starts at 1200, so that the resumed run acts
+# uninterrupted run: after the checkpoint at step 800, before learning starts at 1000, so that the resumed run acts
 # at random from the action space's restored generator for its first steps; then, once resumed, after the checkpoint
-# at step 2000, 800 training steps on, so that the checkpoint holds optimizer states (Adam's step counts and moments)
+# at step 1600, 600 training steps on, so that the checkpoint holds optimizer states (Adam's step counts and moments)
 # that the second resume must restore: at "learning"'s checkpoint no optimizer of an off-policy script has stepped.
-PHASES = {"learning": (1500, 500, 500), "random+trained": (2500, 1200, 1000)}
+PHASES = {"learning": (1500, 500, 500), "random+trained": (2000, 1000, 800)}
 # the on-policy scripts run ~1000 steps/s: a longer run keeps the kill (up to 1 s after the checkpoint) before its end
 ON_POLICY_STEPS = 3000
 
@@ -83,11 +83,12 @@ def final_actor(run_dir, script):
     return torch.load(os.path.join(run_dir, f"{script}_continuous_action.cleanrl_model"), weights_only=True)["actor"]
 
 
-# OPARL is resumed on a MuJoCo and a DMC task, EBD on a DMC task (a DMC episode is rebuilt by rl_utils' env layer,
-# the same for every script: one script of each kind checks it); the others on Hopper-v4; every off-policy script
-# twice in one run on Hopper, whose random episodes are short: in its random phase and once its optimizers have stepped
+# EBD is resumed on a DMC task, and TD3, the cheapest off-policy script, on one too (a DMC episode is rebuilt by
+# rl_utils' env layer, the same for every script: one script of each kind checks it); the other on-policy scripts on
+# Hopper-v4; every off-policy script twice in one run on Hopper, whose random episodes are short: in its random
+# phase and once its optimizers have stepped
 KILL_CASES = [
-    ("oparl", "dm_control/cartpole-swingup-v0", "learning"),
+    ("td3", "dm_control/cartpole-swingup-v0", "learning"),
     ("ebd", "dm_control/cartpole-swingup-v0", "learning"),
 ]
 KILL_CASES += [(script, "Hopper-v4", "random+trained") for script in OFF_POLICY]

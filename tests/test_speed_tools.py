@@ -150,13 +150,13 @@ def test_throughput_window_reads_the_logged_rate_of_each_timed_window(tmp_path):
     a process's agent-steps/s are its steps/s times its seeds."""
     out = tmp_path / "w.csv"
     result = tool(
-        "throughput.py", "td3 --batch-size 32 --num-seeds 2", "--env-id", "Pendulum-v1", "--learning-starts", "100",
-        "--warmup", "100", "--steps", "1900", "--repeats", "1", "--window", "--csv", str(out),
+        "throughput.py", "td3 --batch-size 32 --num-seeds 2", "--env-id", "Pendulum-v1", "--learning-starts", "800",
+        "--warmup", "100", "--steps", "1200", "--repeats", "1", "--window", "--csv", str(out),
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     with open(out) as f:
         rows = list(csv.DictReader(f))
-    assert [row["window_end"] for row in rows] == ["2000"]  # [1000, 2000): the only window from step 200 on
+    assert [row["window_end"] for row in rows] == ["2000"]  # [1000, 2000): the only window from step 900 on
     assert list(rows[0]) == load_tool("throughput").CSV_FIELDS and rows[0]["repeat"] == "1"
     assert rows[0]["seeds_per_copy"] == "2" and rows[0]["copies"] == "1"
     assert float(rows[0]["agent_steps_per_s"]) == pytest.approx(2 * float(rows[0]["steps_per_s"]), abs=0.1)
