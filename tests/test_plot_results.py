@@ -1,6 +1,7 @@
 """plot_results.py on synthetic TensorBoard logs with known values."""
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -251,9 +252,15 @@ def test_two_different_records_of_one_run_are_warned_about(tmp_path, capsys):
     assert "warning: two different runs of td3 on dm_control/cartpole-swingup-v0 seed 1" in err
     # the same run read twice (its CSV and its folder, the folder's record longer: a resumed run) is no warning
     one = str(tmp_path / "one")
-    write_run(one, "td3_continuous_action", DMC_A, 1, [0, 100])
+    run_dir = write_run(one, "td3_continuous_action", DMC_A, 1, [0, 100])
     plot([one, "--no-paper", "--out", str(tmp_path / "short")])
-    write_run(one, "td3_continuous_action", DMC_A, 1, [0, 100, 300])  # the same folder, two more evaluations
+    # resumed as the scripts resume (rl_utils/logs.py): a later process, whose event file's name (its second) sorts after
+    # the first's, with purge_step at the checkpoint. In one second the names would sort by a counter as text ("10" before
+    # "9") and TensorBoard would read the two files the other way round.
+    time.sleep(1.0)
+    with SummaryWriter(run_dir, purge_step=5000) as writer:
+        writer.add_scalar("eval/episodic_return", 100, 5000)
+        writer.add_scalar("eval/episodic_return", 300, 10000)
     plot([str(tmp_path / "short" / "eval_series.csv"), one, "--no-paper", "--out", str(tmp_path / "long")])
     assert "two different runs" not in capsys.readouterr().err
     assert open(tmp_path / "long" / "final_returns.csv").read().splitlines()[1].endswith(",10000,300.0000")
