@@ -382,12 +382,14 @@ progress() {  # prints when the counts (of runs, not processes) changed
 }
 for i in "${!runs[@]}"; do
   while (($(jobs -rp | wc -l) >= workers)); do wait -n; progress; done
+  progress  # a run that ended before the check above is counted before the next one starts
   # a stopped sweep took $status_dir with it (its EXIT trap); its running runs still finish and write their DONE
   (result=$(eval "run_one ${runs[$i]}"); { echo "$result" >"$status_dir/$i.status"; } 2>/dev/null) &
   started=$((started + sizes[i]))
   progress
 done
 while (($(jobs -rp | wc -l) > 0)); do wait -n; progress; done
+progress  # the last line, also when the last run ended before the check above
 
 done_runs=() skipped_runs=("${skipped_before[@]}") busy_runs=() failed_runs=()
 declare -A log_of=()  # a run's process's log: its group's first run's
