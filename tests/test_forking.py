@@ -5,6 +5,7 @@ one seed and with several."""
 import dataclasses
 import os
 import subprocess
+import sys
 
 import pytest
 import torch
@@ -185,3 +186,40 @@ def test_frozen_restores_what_each_parameter_was():
         assert not any(p.requires_grad for p in qf.parameters())
     assert not qf[0].fc1.weight.requires_grad and not qf[0].fc1.bias.requires_grad
     assert all(p.requires_grad for name, p in qf.named_parameters() if not name.startswith("0.fc1"))
+
+
+def test_the_ddpg_walk_in_docs_forking_applies_to_td3_and_trains(tmp_path, monkeypatch):
+    """docs/forking.md's DDPG change, made to today's TD3 as its `diff` block reads: every line it removes is in TD3
+    once, and the fork trains with one critic and steps its actor at every critic step."""
+    import importlib.util
+    import re
+
+    with open(os.path.join(REPO, "docs", "forking.md")) as f:
+        block = re.search(r"```diff\n(.*?)```", f.read(), re.S).group(1).splitlines()
+    removed, added = [line[1:] for line in block if line[0] == "-"], [line[1:] for line in block if line[0] == "+"]
+    with open(os.path.join(REPO, "td3_continuous_action.py")) as f:
+        fork = f.read()
+    assert len(removed) == len(added) == 4
+    for old, new in zip(removed, added):
+        assert fork.count(old + "\n") == 1, f"docs/forking.md's DDPG diff removes a line TD3 no longer has: {old.strip()}"
+        fork = fork.replace(old + "\n", new + "\n")
+    path = tmp_path / "ddpg_continuous_action.py"
+    path.write_text(fork)
+    spec = importlib.util.spec_from_file_location("ddpg_continuous_action", path)
+    ddpg = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "ddpg_continuous_action", ddpg)  # as an import would; undone after the test
+    spec.loader.exec_module(ddpg)
+    monkeypatch.chdir(tmp_path)
+    args = ddpg.Args(
+        env_id="Pendulum-v1", total_timesteps=400, learning_starts=200, batch_size=32, eval_frequency=400, eval_episodes=1
+    )
+    result = ddpg.main(args)
+    assert len(result["qf"]) == len(result["qf_target"]) == 1 and args.policy_noise == 0.0
+    steps = [
+        [s["step"].item() for s in result[name].state_dict()["state"].values()] for name in ("q_optimizer", "actor_optimizer")
+    ]
+    assert min(steps[0]) == max(steps[0]) == min(steps[1]) == max(steps[1]) > 0  # TD3 steps its actor every 2nd step
+    assert (
+        os.path.isdir(os.path.join(tmp_path, "runs"))
+        and os.path.basename(result["run_dir"]).split("__")[1] == "ddpg_continuous_action"
+    )
