@@ -368,7 +368,7 @@ mkdir -p logs
 status_dir="$(mktemp -d)"
 trap 'rm -rf "$status_dir"' EXIT
 started=0
-last_progress=""
+last_progress="runs: 0 finished, 0 running, $n_runs left"  # not printed: the first line is after a launch
 progress() {  # prints when the counts (of runs, not processes) changed
   local finished=0 line status i
   for status in "$status_dir"/*.status; do

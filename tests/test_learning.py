@@ -11,7 +11,7 @@ pytestmark = pytest.mark.slow  # every test here trains or sweeps
 
 # script: (env, total steps, learning starts, batch size, return the final evaluation must beat). A script without
 # an entry is held to its base's budget (a fork of TD3 to TD3's) until it declares its own here. The off-policy
-# batches are below the default 256 to keep the checks short; TD3 at 64 missed the threshold on seed 2 (docs/tests.md).
+# batches are below the default 256 to keep the checks short; TD3 at 64 missed the threshold on seed 2 over 7000 steps.
 # TD3's 8000 steps leave its seed 1 three evaluations past the crossing on both kernel paths measured (docs/tests.md).
 BUDGETS = {
     "td3": ("Pendulum-v1", 8000, 1000, 128, -400.0),
