@@ -1,7 +1,11 @@
 """The GPU's own machinery: --cudagraphs (`CudaGraph`: a training update recorded once and replayed) and copies to
 the GPU that do not wait for it (`to_device`)."""
 
+import dataclasses
+
 import torch
+
+PLAIN = (bool, int, float, str, tuple, type(None))  # values a graph records as constants (a tuple: Adam's betas)
 
 
 class CudaGraph:
@@ -12,11 +16,65 @@ class CudaGraph:
     copies its tensors (a tensor, or a NamedTuple of them such as a Batch) into the graph's own inputs and replays it:
     one launch instead of hundreds of small kernels, with no host synchronisation. What it returns is overwritten by
     its next replay. The default CUDA generator is registered with each graph, so that a replay draws anew from it and
-    advances it as `fn` would. A graph replays the networks it recorded: reset them in place, never by assignment."""
+    advances it as `fn` would. A graph replays the networks it recorded: reset them in place, never by assignment.
+
+    A graph also keeps every number `fn` read while it was recorded. So what `fn` reads without taking it is watched
+    (`reads`): the plain values in its closure, the fields of a dataclass there (args) and its optimizers'
+    hyperparameters (lr, betas, ...); a replay after one of them changed stops, naming it: a value that changes goes
+    in as a tensor, which a graph reads anew at each replay (an optimizer's lr: a tensor changed in place)."""
 
     def __init__(self, fn, warmup: int = 3, max_graphs: int = 8):
         self.fn, self.warmup, self.max_graphs = fn, warmup, max_graphs
-        self.calls, self.graphs, self.inputs, self.outputs = {}, {}, {}, {}
+        self.calls, self.graphs, self.inputs, self.outputs, self.recorded, self.fingerprints = {}, {}, {}, {}, {}, {}
+
+    def closure(self) -> dict:
+        """{name: value} of the variables `fn` reads from the function that defined it (main's: args, optimizers, ...)."""
+        code, cells = getattr(self.fn, "__code__", None), getattr(self.fn, "__closure__", None) or ()
+        found = {}
+        for name, cell in zip(code.co_freevars if code else (), cells):
+            try:
+                found[name] = cell.cell_contents
+            except ValueError:  # a cell not yet filled
+                pass
+        return found
+
+    def reads(self) -> dict:
+        """{name: value} of what `fn` reads that is not an argument and that a graph keeps as recorded: the plain values
+        in its closure, the fields of a dataclass there (args), its optimizers' hyperparameters (lr, betas, ...), and
+        which object each other variable there is."""
+        found = {}
+        for name, value in self.closure().items():
+            if isinstance(value, torch.optim.Optimizer):
+                for i, group in enumerate(value.param_groups):
+                    found.update({f"{name}.param_groups[{i}]['{k}']": v for k, v in group.items() if isinstance(v, PLAIN)})
+            elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+                found.update({f"{name}.{k}": v for k, v in vars(value).items() if isinstance(v, PLAIN)})
+            found[name] = value if isinstance(value, PLAIN) else f"the object {id(value):#x}"
+        return found
+
+    def fingerprint(self) -> list:
+        """reads() in a form that compares quickly (each replay does): containers copied, compared by identity within."""
+        values = []
+        for value in self.closure().values():
+            if isinstance(value, torch.optim.Optimizer):
+                values.append([dict(group) for group in value.param_groups])
+            elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+                values.append(dict(vars(value)))
+            values.append(value if isinstance(value, PLAIN) else id(value))
+        return values
+
+    def check_reads(self, key: tuple):
+        """Stops a replay of the graph recorded for `key` if something it read as a constant has changed since."""
+        if self.fingerprint() == self.fingerprints[key]:
+            return
+        now, then = self.reads(), self.recorded[key]
+        name = next((n for n in {**then, **now} if now.get(n) != then.get(n)), "a value in its closure")
+        raise ValueError(
+            f"CudaGraph({getattr(self.fn, '__name__', self.fn)}): `{name}` was {then.get(name)!r} when the graph was "
+            f"recorded and is {now.get(name)!r} now; a graph replays the values it recorded: make a value that changes a "
+            "tensor, changed in place (an optimizer's lr: torch.tensor(lr, device=...), then .fill_(new_lr)), which the "
+            "graph reads anew at each replay"
+        )
 
     @staticmethod
     def key(*inputs) -> tuple:
@@ -42,6 +100,7 @@ class CudaGraph:
                 "call to call as a tensor (torch.tensor(x, device=...)), which the graph reads anew at each replay"
             )
         if key in self.graphs:
+            self.check_reads(key)
             for static, new in zip(self.tensors(self.inputs[key]), self.tensors(inputs)):
                 static.copy_(new)
         else:
@@ -54,6 +113,7 @@ class CudaGraph:
                 torch.cuda.current_stream().wait_stream(stream)
                 return outputs
             self.inputs[key] = [self.clone(x) for x in inputs]
+            self.recorded[key], self.fingerprints[key] = self.reads(), self.fingerprint()
             self.graphs[key] = torch.cuda.CUDAGraph()
             with torch.cuda.graph(self.graphs[key]):  # records the kernels without running them
                 self.outputs[key] = self.fn(*self.inputs[key])

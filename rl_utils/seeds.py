@@ -15,11 +15,17 @@ state into one checkpoint per seed and `join_seeds` stacks them again; `model_of
 
 import functools
 import os
+import random
+import weakref
 
+import numpy as np
 import torch
 import torch.nn as nn
+import torch.nn.utils.clip_grad as clip_grad
 from torch.func import functional_call, vmap
 from torch.utils._pytree import tree_flatten, tree_map
+
+STACKED = weakref.WeakSet()  # every parameter stack_seeds stacked for several seeds (gradient clipping reads it)
 
 
 def stack_seeds(networks, seeds: list, device: torch.device) -> list:
@@ -38,7 +44,10 @@ def stack_seeds(networks, seeds: list, device: torch.device) -> list:
             for name, param in list(nets[0].named_parameters()):
                 stacked = torch.stack([net.get_parameter(name).detach() for net in nets])
                 owner, _, attr = name.rpartition(".")
-                setattr(nets[0].get_submodule(owner), attr, nn.Parameter(stacked, requires_grad=param.requires_grad))
+                stacked = nn.Parameter(stacked, requires_grad=param.requires_grad)
+                stacked.num_seeds = len(seeds)
+                STACKED.add(stacked)
+                setattr(nets[0].get_submodule(owner), attr, stacked)
             for name, _ in list(nets[0].named_buffers()):
                 owner, _, attr = name.rpartition(".")
                 module = nets[0].get_submodule(owner)
@@ -83,12 +92,44 @@ def check_seeds_dimension(fn, args, n: int):
                 )
 
 
+def python_draws() -> tuple:
+    """The states of the generators a vmap cannot draw from per seed: Python's and NumPy's global ones."""
+    return random.getstate(), np.random.get_state(legacy=False)
+
+
+def same_draws(before: tuple, after: tuple) -> bool:
+    (python_before, numpy_before), (python_after, numpy_after) = before, after
+    same_numpy = all(np.array_equal(numpy_before["state"][k], numpy_after["state"][k]) for k in ("key", "pos")) and all(
+        numpy_before[k] == numpy_after[k] for k in ("has_gauss", "gauss")
+    )
+    return python_before == python_after and same_numpy
+
+
+# how many calls of a per-seed function (with several seeds) are watched for draws from Python's or NumPy's generator
+WATCHED_CALLS = 10
+
+
+def vmap_refusal(fn, n: int, error: RuntimeError) -> RuntimeError:
+    """torch.func.vmap's refusal of something a one-seed function did, as one line that says what per_seed needs."""
+    what = " ".join(str(error).split(". ")[0].removeprefix("vmap: ").split())
+    return RuntimeError(
+        f"per_seed({getattr(fn, '__name__', fn)}) with {n} seeds: {what}. With several seeds the function runs for all "
+        "of them at once (torch.func.vmap): it cannot read a tensor's value into Python (.item(), float(), an `if` on a "
+        "tensor), take a shape from values (a boolean mask), or draw in place into a tensor the seeds share; write it "
+        "with tensor operations (torch.where, a mask multiplied in, clamp) and draw with torch.randn_like(x) and the like"
+    )
+
+
 def per_seed(fn):
     """fn (a function or a network), written for one seed, run for every seed: its tensor arguments (and NamedTuples
-    of them) carry a leading seeds dimension, its networks come from stack_seeds, what it returns gains that dimension."""
+    of them) carry a leading seeds dimension, its networks come from stack_seeds, what it returns gains that dimension.
+    With several seeds, what vmap cannot run per seed stops with one line: a value read into Python, and (on the
+    first WATCHED_CALLS calls) a draw from Python's or NumPy's generator, which would be one draw all seeds share."""
+    calls = 0
 
     @functools.wraps(fn)
     def run(*args):
+        nonlocal calls
         n = num_seeds(fn, args)
         check_seeds_dimension(fn, args, n)
         if n == 1:  # as written, on seed 0's share of each tensor
@@ -102,9 +143,72 @@ def per_seed(fn):
         def one_seed(state, *args):
             return functional_call(networks, state, (fn, args))
 
-        return vmap(one_seed, in_dims=(0, *in_dims), randomness="different")(state, *args)
+        calls += 1
+        before = python_draws() if calls <= WATCHED_CALLS else None
+        try:
+            out = vmap(one_seed, in_dims=(0, *in_dims), randomness="different")(state, *args)
+        except RuntimeError as error:
+            if str(error).startswith("vmap:") or "doesn't have storage" in str(error):  # .tolist() gives the latter
+                raise vmap_refusal(fn, n, error) from error
+            raise
+        if before is not None and not same_draws(before, python_draws()):
+            raise RuntimeError(
+                f"per_seed({getattr(fn, '__name__', fn)}) with {n} seeds drew from Python's or NumPy's random generator "
+                "(random, np.random), which a vmap over the seeds runs once, for all of them: one draw the seeds would "
+                "share; draw with torch (torch.randn_like(x), torch.rand(shape), ...), which gives each seed its own"
+            )
+        return out
 
     return run
+
+
+# Gradient clipping by norm, per seed. torch.nn.utils.clip_grad_norm_ takes one norm over all the gradients it is
+# given; with several seeds stacked that would be one norm over every seed's, and a seed's step would depend on the
+# others'. Its two parts, which it looks up at each call, are replaced: given the gradients of stacked parameters they
+# take each seed's own norm (a tensor [num_seeds]) and scale each seed's gradients by its own coefficient, as a
+# single-seed run of that seed would; any other gradients go to PyTorch's own functions unchanged.
+torch_total_norm, torch_clip_grads_with_norm = clip_grad._get_total_norm, clip_grad._clip_grads_with_norm_
+
+
+def stacked_seeds(grads: list) -> int:
+    """The number of seeds stacked in these gradients (0 when none is a stacked parameter's gradient)."""
+    stacked = {id(p.grad): p.num_seeds for p in list(STACKED) if p.grad is not None}
+    found = {stacked.get(id(g), 0) for g in grads}
+    if len(found) > 1:
+        raise RuntimeError(
+            "clip_grad_norm_: the gradients of parameters stacked for several seeds (stack_seeds) with others; one norm "
+            "over them would mix the seeds: clip the stacked networks' parameters in a call of their own"
+        )
+    return found.pop() if found else 0
+
+
+@torch.no_grad()
+def get_total_norm(tensors, norm_type=2.0, error_if_nonfinite=False, foreach=None) -> torch.Tensor:
+    tensors = [tensors] if isinstance(tensors, torch.Tensor) else list(tensors)
+    n = stacked_seeds(tensors)
+    if not n:
+        return torch_total_norm(tensors, norm_type, error_if_nonfinite, foreach)
+    norms = torch.stack([torch.linalg.vector_norm(t.reshape(n, -1), norm_type, dim=1) for t in tensors])
+    total = torch.linalg.vector_norm(norms, norm_type, dim=0)  # [num_seeds]: each seed's norm over its gradients
+    if error_if_nonfinite and not torch.isfinite(total).all():
+        raise RuntimeError(f"the total norm of order {norm_type} of a seed's gradients is non-finite: it cannot be clipped")
+    return total
+
+
+@torch.no_grad()
+def clip_grads_with_norm_(parameters, max_norm, total_norm, foreach=None):
+    parameters = [parameters] if isinstance(parameters, torch.Tensor) else list(parameters)
+    grads = [p.grad for p in parameters if p.grad is not None]
+    n = stacked_seeds(grads)
+    if not n:
+        return torch_clip_grads_with_norm(parameters, max_norm, total_norm, foreach)
+    coefficient = (float(max_norm) / (total_norm + 1e-6)).clamp(max=1.0)  # one per seed (or one for all, if given so)
+    for g in grads:
+        g.mul_(coefficient.reshape(-1, *[1] * (g.dim() - 1)))
+
+
+clip_grad._get_total_norm, clip_grad._clip_grads_with_norm_ = get_total_norm, clip_grads_with_norm_
+torch.nn.utils.get_total_norm, torch.nn.utils.clip_grads_with_norm_ = get_total_norm, clip_grads_with_norm_
 
 
 # Each seed's checkpoint holds its cut of the stacked state. Networks (parameters and buffers) and their optimizer

@@ -4,17 +4,20 @@ one seed and with several."""
 
 import dataclasses
 import os
+import random
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 import torch.nn as nn
 
 import sac_continuous_action as sac
 import td3_continuous_action as td3
-from conftest import REPO, parse, script_command
+from conftest import REPO, needs_cuda, parse, script_command
 from rl_utils import CudaGraph, parse_args, per_seed, stack_seeds
+import rl_utils.seeds as seeds_module
 from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
 
 SEEDS = pytest.mark.parametrize("seeds", [[4], [4, 5, 6]], ids=["one seed", "three seeds"])
@@ -131,6 +134,68 @@ def test_a_graphed_update_given_a_changing_number_stops_saying_to_pass_a_tensor(
     assert "pass a number that changes from call to call as a tensor" in message
 
 
+class Replayed:
+    """A recorded graph's stand-in (recording needs a GPU): counts its replays."""
+
+    def __init__(self):
+        self.replays = 0
+
+    def replay(self):
+        self.replays += 1
+
+
+def recorded(update, *inputs):
+    """`update` as CudaGraph leaves it once it has recorded the graph of these inputs' key (faked: no GPU here)."""
+    key = update.key(*inputs)
+    update.graphs[key], update.inputs[key], update.outputs[key] = Replayed(), [update.clone(x) for x in inputs], {}
+    update.recorded[key], update.fingerprints[key] = update.reads(), update.fingerprint()
+    return update.graphs[key]
+
+
+@pytest.mark.parametrize("change", ["lr", "args.tau", "a number", "a network bound anew", "a tensor lr"])
+def test_a_graphed_update_stops_when_what_it_read_as_a_constant_changes(change):
+    """A recorded graph keeps every number the update read while it was recorded: a learning-rate schedule on a float
+    lr, a flag changed mid-run, a number main rebinds would all be replayed as they were, without a word. The replay
+    after such a change stops, naming the value; a value the update takes as a tensor and that changes in place (a
+    tensor lr, .fill_) is read anew and passes."""
+    args = td3.Args()
+    net = nn.Linear(3, 1)
+    optimizer = torch.optim.Adam(net.parameters(), lr=torch.tensor(1e-3) if change == "a tensor lr" else 1e-3)
+    scale = 2.0
+
+    def update(batch, policy_step):
+        return {"loss": net(batch).sum() * scale * args.tau, "lr": optimizer.param_groups[0]["lr"]}
+
+    def rebind():
+        nonlocal net, scale
+        if change == "a network bound anew":
+            net = nn.Linear(3, 1)
+        else:
+            scale = 3.0
+
+    graphed = CudaGraph(update)
+    graph = recorded(graphed, torch.ones(2, 3), True)
+    graphed(torch.ones(2, 3), True)
+    assert graph.replays == 1
+    if change == "lr":
+        optimizer.param_groups[0]["lr"] = 5e-4  # what a scheduler does
+    elif change == "args.tau":
+        args.tau = 0.01
+    elif change == "a tensor lr":
+        optimizer.param_groups[0]["lr"].fill_(5e-4)  # in place: the graph reads it anew
+        graphed(torch.ones(2, 3), True)
+        assert graph.replays == 2
+        return
+    else:
+        rebind()
+    with pytest.raises(ValueError) as refused:
+        graphed(torch.ones(2, 3), True)
+    message = str(refused.value)
+    named = {"lr": "optimizer.param_groups[0]['lr']", "args.tau": "args.tau", "a number": "scale"}.get(change, "net")
+    assert "\n" not in message and message.startswith(f"CudaGraph(update): `{named}` was ")
+    assert "torch.tensor(lr, device=...)" in message and graph.replays == 1  # stopped before replaying
+
+
 @pytest.mark.parametrize("num_seeds", [1, 2])
 @pytest.mark.parametrize("rebound", ["qf_target", "q_optimizer"])
 def test_a_network_or_optimizer_bound_anew_stops_the_run_at_that_step(rebound, num_seeds, tmp_path):
@@ -152,16 +217,41 @@ def test_a_network_or_optimizer_bound_anew_stops_the_run_at_that_step(rebound, n
     assert f"{rebound}.load_state_dict(fresh.state_dict()), fresh built as main builds it, by stack_seeds" in line
 
 
-def run_fork(tmp_path, edit, num_seeds=1):
+def run_fork(tmp_path, edit, num_seeds=1, *extra):
     """A fork of TD3 (td3_continuous_action.py with `edit(source)` applied) run for 400 steps on Pendulum-v1."""
     source = open(os.path.join(REPO, "td3_continuous_action.py")).read()
     (tmp_path / "fork_continuous_action.py").write_text(edit(source))
     flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "400", "--learning-starts", "200", "--batch-size", "32"]
-    flags += ["--eval-frequency", "400", "--eval-episodes", "1", "--num-seeds", str(num_seeds), "--run-name", "r{seed}"]
+    flags += [
+        "--eval-frequency",
+        "400",
+        "--eval-episodes",
+        "1",
+        "--num-seeds",
+        str(num_seeds),
+        "--run-name",
+        "r{seed}",
+        *extra,
+    ]
     command = script_command("td3", *flags)
     command[1] = str(tmp_path / "fork_continuous_action.py")
     env = {**os.environ, "PYTHONPATH": REPO}
     return subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+
+
+@needs_cuda
+def test_a_fork_with_a_float_learning_rate_schedule_stops_under_cudagraphs(tmp_path):
+    """A fork of TD3 that halves its critic's learning rate at step 300, as a scheduler would (a float in the
+    optimizer's param group): its recorded update would go on with the old rate. Under --cudagraphs the first replay
+    after the change stops, naming it."""
+    anchor = "        run.log_episodes(infos, global_step)\n"
+    schedule = "        if global_step == 300:\n            q_optimizer.param_groups[0]['lr'] = 1.5e-4\n"
+    result = run_fork(tmp_path, lambda source: source.replace(anchor, anchor + schedule), 1, "--cudagraphs")
+    assert result.returncode != 0
+    assert (
+        "CudaGraph(update): `q_optimizer.param_groups[0]['lr']` was 0.0003 when the graph was recorded and is "
+        in (result.stderr.strip().splitlines()[-1])
+    )
 
 
 def test_a_network_main_holds_but_does_not_checkpoint_is_refused_at_the_start(tmp_path):
@@ -223,3 +313,102 @@ def test_the_ddpg_walk_in_docs_forking_applies_to_td3_and_trains(tmp_path, monke
         os.path.isdir(os.path.join(tmp_path, "runs"))
         and os.path.basename(result["run_dir"]).split("__")[1] == "ddpg_continuous_action"
     )
+
+
+def scaled_by_item(x, net):
+    return net(x).mean() * x.abs().max().item()  # a value read into Python
+
+
+def clipped_by_if(x, net):
+    y = net(x).mean()
+    return y if y > 0 else -y  # an `if` on a tensor
+
+
+def noised_with_numpy(x, net):
+    return net(x).mean() + float(np.random.normal())  # a draw from NumPy's generator
+
+
+def noised_with_random(x, net):
+    return net(x).mean() * random.uniform(0.9, 1.1)  # a draw from Python's generator
+
+
+@pytest.mark.parametrize("fn", [scaled_by_item, clipped_by_if, noised_with_numpy, noised_with_random])
+def test_what_a_vmap_cannot_run_per_seed_runs_for_one_seed_and_stops_in_one_line_for_several(fn):
+    """A one-seed function that reads a value into Python, or draws from Python's or NumPy's generator, runs as
+    written with one seed; with several, vmap could not run the first per seed and would run the draw once, shared by
+    every seed, without a word: both stop, in one line that names the function and what to write instead."""
+    x = torch.randn(1, 8, 3)
+    np.random.seed(0)
+    random.seed(0)
+    alone = per_seed(fn)(x, built([4]))
+    np.random.seed(0)
+    random.seed(0)
+    assert torch.equal(alone, fn(x[0], built([4])).unsqueeze(0))  # as written
+    with pytest.raises(RuntimeError) as refused:
+        per_seed(fn)(torch.randn(3, 8, 3), built([4, 5, 6]))
+    message = str(refused.value)
+    assert "\n" not in message and message.startswith(f"per_seed({fn.__name__}) with 3 seeds")
+    assert "torch.randn_like" in message
+    if fn in (noised_with_numpy, noised_with_random):
+        assert "one draw the seeds would share" in message
+    else:
+        assert "cannot read a tensor's value into Python" in message
+
+
+def test_torch_draws_in_a_per_seed_function_are_each_seeds_own_and_pass_the_watch():
+    def noised(x, net):
+        return net(x).squeeze(-1) + torch.randn_like(x[..., 0]) + torch.rand(x.shape[:-1]) + torch.randperm(8)
+
+    out = per_seed(noised)(torch.zeros(3, 8, 3), built([4, 5, 6]))
+    assert out.shape == (3, 8) and not torch.equal(out[0] - out[0].mean(), out[1] - out[1].mean())
+
+
+def two_layers():
+    return [nn.Sequential(nn.Linear(3, 4), nn.Tanh(), nn.Linear(4, 1))]
+
+
+@pytest.mark.parametrize("style", ["nn.utils", "imported"])
+def test_clip_grad_norm_clips_each_seed_by_its_own_norm(style):
+    """A fork's torch.nn.utils.clip_grad_norm_ (or the function imported by name, before rl_utils) in a process of
+    three seeds clips each seed's gradients by that seed's norm, as the seed's single-seed run would, and returns the
+    seeds' norms; one seed's gradients are PyTorch's own computation, bit for bit."""
+    from torch.nn.utils import clip_grad_norm_ as imported
+
+    clip = {"nn.utils": nn.utils.clip_grad_norm_, "imported": imported}[style]
+    seeds = [4, 5, 6]
+    torch.manual_seed(4)
+    stacked = stack_seeds(two_layers, seeds, torch.device("cpu"))[0]
+    alone = []
+    for seed in seeds:
+        torch.manual_seed(seed)
+        alone.append(two_layers()[0])
+    x = torch.randn(3, 16, 3) * torch.tensor([1.0, 10.0, 100.0]).view(3, 1, 1)  # norms far apart: each seed its own
+    per_seed(lambda x, net: net(x).pow(2).mean())(x, stacked).sum().backward()
+    norms = clip(stacked.parameters(), 1.0)
+    assert norms.shape == (3,) and norms.min() < 1.0 < norms.max()  # one seed left as it is, the others clipped
+    for k, net in enumerate(alone):
+        net(x[k]).pow(2).mean().backward()
+        plain = [p.grad.clone() for p in net.parameters()]
+        norm = seeds_module.torch_total_norm(plain)
+        torch.testing.assert_close(norms[k], norm)
+        seeds_module.torch_clip_grads_with_norm(list(net.parameters()), 1.0, norm)
+        for p, q in zip(stacked.parameters(), net.parameters()):
+            torch.testing.assert_close(p.grad[k], q.grad)
+    one = two_layers()[0]
+    one(x[0]).pow(2).mean().backward()
+    twin = [p.grad.clone() for p in one.parameters()]
+    norm = clip(one.parameters(), 0.5)
+    expected = seeds_module.torch_total_norm(twin)
+    assert torch.equal(norm, expected)
+    for p, g in zip(one.parameters(), twin):
+        assert torch.equal(p.grad, g * torch.clamp(0.5 / (expected + 1e-6), max=1.0))
+
+
+def test_clip_grad_norm_over_stacked_and_plain_parameters_together_is_refused_in_one_line():
+    stacked = stack_seeds(two_layers, [4, 5], torch.device("cpu"))[0]
+    plain = nn.Linear(3, 1)
+    per_seed(lambda x, net: net(x).sum())(torch.randn(2, 5, 3), stacked).sum().backward()
+    plain(torch.randn(5, 3)).sum().backward()
+    with pytest.raises(RuntimeError) as refused:
+        nn.utils.clip_grad_norm_([*stacked.parameters(), *plain.parameters()], 1.0)
+    assert "\n" not in str(refused.value) and "in a call of their own" in str(refused.value)
