@@ -187,3 +187,46 @@ def test_welch_paired_matches_runs_by_seed_and_pooled_arms_by_precedence(tmp_pat
     assert float(cells[6]) == pytest.approx(stats.ttest_rel(x, yz).pvalue, abs=0.001)
     refused = tool("welch.py", str(path), "y", "z", "--paired")  # one seed in common
     assert refused.returncode != 0 and "at least two seeds" in refused.stderr.strip().splitlines()[-1]
+
+
+def test_learning_checks_summary_counts_the_check_and_the_final_mean(tmp_path):
+    """tools/learning_checks.py's table on hand-made evaluations: a TD3 seed whose final evaluation dips passes the
+    check and fails the final mean; one that never learns fails both; evaluations past the budget are rows of their
+    own; a PPO run's end is its budget."""
+    rows = []
+    for step in range(0, 8501, 500):
+        learned = step >= 6000
+        rows.append(["td3", 1, step, *([-150.0] * 10 if learned and step != 8000 else [-700.0] * 10)])
+        rows.append(["td3", 2, step, *([-1200.0] * 10)])
+    rows += [["ppo", 1, step, *([1000.0] * 10)] for step in (26624, 28672, 30000)]
+    path = tmp_path / "checks.csv"
+    path.write_text("\n".join(",".join(map(str, row)) for row in rows) + "\n")
+    done = tool("learning_checks.py", "--summary", str(path))
+    assert done.returncode == 0, done.stderr
+    td3 = [line for line in done.stdout.splitlines() if line.startswith("| td3")]
+    assert len(td3) == 2  # the budget, and the one evaluation past it
+    assert td3[0].startswith(
+        "| td3, Pendulum-v1, > -400 (the test's budget) | 8000 | 2 | 1 of 2 | -1200.0 (seed 2) | 0 of 2 |"
+    )
+    assert td3[1].startswith("| td3, Pendulum-v1, > -400 | 8500 | 2 | 1 of 2 |") and "| 1 of 2 |" in td3[1]
+    assert "| ppo, InvertedPendulum-v4, > 500 (the test's budget) | 30000 | 1 | 1 of 1 |" in done.stdout
+
+
+@pytest.mark.parametrize(
+    "flags,message",
+    [
+        (["redq", "--out", "x.csv"], "redq has no learning check"),
+        (["ppo", "--extra-steps", "2048", "--out", "x.csv"], "anneal(s) the learning rate over the run"),
+        (["td3"], "--out CSV is needed"),
+        (["--summary", "missing.csv"], "no such file missing.csv"),
+    ],
+)
+def test_learning_checks_bad_input_gets_one_line(flags, message, tmp_path):
+    done = subprocess.run(
+        [sys.executable, os.path.join(REPO, "tools", "learning_checks.py"), *flags],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert done.returncode == 2 and message in done.stderr.strip().splitlines()[-1]
