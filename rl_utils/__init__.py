@@ -9,7 +9,8 @@ draw other noise than single-seed runs) and says so where they are. One module a
                  by side (`SeedEnvs`), and the deterministic evaluation loop (`evaluate`)
     buffers      the replay buffer of the off-policy scripts (`ReplayBuffer`, `Batch`)
     seeds        several seeds in one process (--num-seeds): one seed's networks stacked (`stack_seeds`), a function
-                 written for one seed run for all of them at once (`per_seed`), and each seed's cut of a checkpoint
+                 written for one seed run for all of them at once (`per_seed`), each seed's cut of a checkpoint, and
+                 gradient clipping and nn.init made per seed on stacked parameters
     numerics     the NaN guard (`check_finite`), --bf16 (`bf16_autocast`), a network's gradients off a while (`frozen`)
     gpu          --cudagraphs (`CudaGraph`) and copies to the GPU that do not wait for it (`to_device`)
     checkpoints  what a checkpoint holds and how a run continues from it, exactly (`snapshot`, `restore`), the envs'

@@ -11,6 +11,10 @@ per seed (`randomness="different"`): nothing flows between seeds, and each seed'
 
 A checkpoint holds one seed's share of all this, as a single-seed run would write it: `split_seeds` cuts a process's
 state into one checkpoint per seed and `join_seeds` stacks them again; `model_of_seed` is --save-model's cut.
+
+What a fork adds in plain PyTorch keeps working per seed: importing this module makes gradient clipping by norm
+(`torch.nn.utils.clip_grad_norm_`) and re-initialisation (`reset_parameters()`, `torch.nn.init`) treat each seed of
+a stacked parameter as the one-seed tensor it is; anything else stays PyTorch's own.
 """
 
 import functools
@@ -21,11 +25,14 @@ import weakref
 import numpy as np
 import torch
 import torch.nn as nn
+import torch.nn.init as init
 import torch.nn.utils.clip_grad as clip_grad
 from torch.func import functional_call, vmap
 from torch.utils._pytree import tree_flatten, tree_map
 
-STACKED = weakref.WeakSet()  # every parameter stack_seeds stacked for several seeds (gradient clipping reads it)
+# every parameter stack_seeds stacked for several seeds, by id (gradient clipping finds their gradients); such a
+# parameter carries its number of seeds as `num_seeds`
+STACKED = weakref.WeakValueDictionary()
 
 
 def stack_seeds(networks, seeds: list, device: torch.device) -> list:
@@ -46,7 +53,7 @@ def stack_seeds(networks, seeds: list, device: torch.device) -> list:
                 owner, _, attr = name.rpartition(".")
                 stacked = nn.Parameter(stacked, requires_grad=param.requires_grad)
                 stacked.num_seeds = len(seeds)
-                STACKED.add(stacked)
+                STACKED[id(stacked)] = stacked
                 setattr(nets[0].get_submodule(owner), attr, stacked)
             for name, _ in list(nets[0].named_buffers()):
                 owner, _, attr = name.rpartition(".")
@@ -172,7 +179,7 @@ torch_total_norm, torch_clip_grads_with_norm = clip_grad._get_total_norm, clip_g
 
 def stacked_seeds(grads: list) -> int:
     """The number of seeds stacked in these gradients (0 when none is a stacked parameter's gradient)."""
-    stacked = {id(p.grad): p.num_seeds for p in list(STACKED) if p.grad is not None}
+    stacked = {id(p.grad): p.num_seeds for p in list(STACKED.values()) if p.grad is not None}
     found = {stacked.get(id(g), 0) for g in grads}
     if len(found) > 1:
         raise RuntimeError(
@@ -209,6 +216,35 @@ def clip_grads_with_norm_(parameters, max_norm, total_norm, foreach=None):
 
 clip_grad._get_total_norm, clip_grad._clip_grads_with_norm_ = get_total_norm, clip_grads_with_norm_
 torch.nn.utils.get_total_norm, torch.nn.utils.clip_grads_with_norm_ = get_total_norm, clip_grads_with_norm_
+
+
+# Re-initialising a stacked parameter mid-run (a reset: layer.reset_parameters(), nn.init.kaiming_uniform_(weight))
+# treats each seed's slice as the one-seed tensor it is. The fan-based initialisations (kaiming, xavier, nn.Linear's
+# own) read a weight's fans from one seed's [out, in], not from [num_seeds, out, in]; the initialisations shaped by
+# the whole tensor (orthogonal_, sparse_, eye_, dirac_), called through torch.nn.init, initialise each seed's slice
+# on its own. The element-wise ones (normal_, uniform_, zeros_, trunc_normal_ with its std) need nothing.
+torch_fans = init._calculate_fan_in_and_fan_out
+
+
+def fans(tensor: torch.Tensor) -> tuple:
+    return torch_fans(tensor[0] if getattr(tensor, "num_seeds", 1) > 1 else tensor)
+
+
+def each_seed(initialise):
+    @functools.wraps(initialise)
+    def initialise_each_seed(tensor, *args, **kwargs):
+        if getattr(tensor, "num_seeds", 1) == 1:
+            return initialise(tensor, *args, **kwargs)
+        for seed_tensor in tensor:  # each a view into the stacked parameter, initialised in place
+            initialise(seed_tensor, *args, **kwargs)
+        return tensor
+
+    return initialise_each_seed
+
+
+init._calculate_fan_in_and_fan_out = fans
+for name in ("orthogonal_", "sparse_", "eye_", "dirac_"):
+    setattr(init, name, each_seed(getattr(init, name)))
 
 
 # Each seed's checkpoint holds its cut of the stacked state. Networks (parameters and buffers) and their optimizer

@@ -412,3 +412,30 @@ def test_clip_grad_norm_over_stacked_and_plain_parameters_together_is_refused_in
     with pytest.raises(RuntimeError) as refused:
         nn.utils.clip_grad_norm_([*stacked.parameters(), *plain.parameters()], 1.0)
     assert "\n" not in str(refused.value) and "in a call of their own" in str(refused.value)
+
+
+def test_a_reset_by_nn_init_initialises_each_seed_as_a_one_seed_tensor():
+    """A fork that resets a layer mid-run with nn.Linear's reset_parameters() or torch.nn.init (as primacy-bias
+    resets do): with three seeds stacked, each seed's slice is initialised as a one-seed weight would be, its fans
+    those of [out, in] (not [3, out, in], which would shrink kaiming's bound by sqrt(7)), orthogonal_ per seed."""
+    seeds = [4, 5, 6]
+    layer = stack_seeds(lambda: [nn.Linear(5, 7)], seeds, torch.device("cpu"))[0]
+    before = layer.weight
+    layer.reset_parameters()  # kaiming_uniform_(a=sqrt(5)): |w| <= 1/sqrt(fan_in); the bias too
+    bound = 5**-0.5
+    assert layer.weight is before and layer.weight.abs().max() <= bound and layer.weight.abs().max() > 0.9 * bound
+    assert layer.bias.abs().max() <= bound and layer.bias.abs().max() > 0.8 * bound
+    for k in range(3):  # each seed its own draw, spread as a one-seed layer's
+        assert layer.weight[k].abs().max() > 0.8 * bound and not torch.equal(layer.weight[k], layer.weight[(k + 1) % 3])
+    nn.init.xavier_uniform_(layer.weight)
+    assert layer.weight.abs().max() <= (6 / (5 + 7)) ** 0.5
+    nn.init.orthogonal_(layer.weight)
+    for k in range(3):
+        torch.testing.assert_close(layer.weight[k].T @ layer.weight[k], torch.eye(5), atol=1e-5, rtol=0)
+    one = stack_seeds(lambda: [nn.Linear(5, 7)], [4], torch.device("cpu"))[0]
+    torch.manual_seed(0)
+    nn.init.orthogonal_(one.weight)
+    torch.manual_seed(0)
+    plain = torch.empty(7, 5)
+    torch.nn.init.orthogonal_(plain)
+    assert torch.equal(one.weight.detach(), plain)  # one seed: PyTorch's own initialisation
