@@ -2,10 +2,102 @@
 the GPU that do not wait for it (`to_device`)."""
 
 import dataclasses
+import functools
+import inspect
+import types
 
 import torch
 
-PLAIN = (bool, int, float, str, tuple, type(None))  # values a graph records as constants (a tuple: Adam's betas)
+PLAIN = (bool, int, float, complex, str, bytes, tuple, frozenset, type(None))  # what a graph records as a constant
+
+
+def probes(fn) -> list:
+    """What `fn` reads that is not an argument and that a recorded graph keeps as it was: [(label, read)], each
+    `read()` giving the value now (a plain one is compared by value, an object by identity: the one recorded). Found
+    in `fn`'s closure, the globals it names, the functions and partials it reaches that way (three levels deep), and in
+    what they hold: plain values, the fields of a dataclass or SimpleNamespace (args), a dict's or list's plain
+    entries, an optimizer's hyperparameters (lr, betas, ...), a network's plain attributes and training flags."""
+    found, seen = [], set()
+
+    def value(label, read, depth):
+        try:
+            x = read()
+        except (ValueError, KeyError, AttributeError, IndexError):  # an unfilled cell: nothing a graph could have read
+            return
+        found.append((label, read))
+        if is_plain(x) or id(x) in seen:
+            return
+        seen.add(id(x))
+        if isinstance(x, torch.optim.Optimizer):
+            for i, group in enumerate(x.param_groups):
+                for k in group:
+                    if k != "params":
+                        value(f"{label}.param_groups[{i}]['{k}']", lambda g=group, k=k: g[k], depth)
+        elif isinstance(x, torch.nn.Module):  # its mode (eval() and train() set every layer's) and its plain attributes
+            for k, v in vars(x).items():
+                if not k.startswith("_") and isinstance(v, PLAIN):
+                    found.append((f"{label}.{k}", lambda m=x, k=k: getattr(m, k)))
+        elif dataclasses.is_dataclass(x) and not isinstance(x, type):
+            for field in dataclasses.fields(x):
+                found.append((f"{label}.{field.name}", lambda x=x, k=field.name: getattr(x, k)))
+        elif isinstance(x, types.SimpleNamespace):
+            for k in vars(x):
+                found.append((f"{label}.{k}", lambda x=x, k=k: getattr(x, k)))
+        elif isinstance(x, dict):
+            for k, v in x.items():
+                if isinstance(v, PLAIN):
+                    found.append((f"{label}[{k!r}]", lambda x=x, k=k: x[k]))
+        elif isinstance(x, list):
+            for i, v in enumerate(x):
+                if isinstance(v, PLAIN):
+                    found.append((f"{label}[{i}]", lambda x=x, i=i: x[i]))
+        elif depth < 3 and (isinstance(x, functools.partial) or getattr(x, "__module__", None) == module):
+            # the script's own functions (not rl_utils'), and partials
+            function(label, x, depth + 1)
+
+    def function(label, f, depth):
+        if isinstance(f, functools.partial):
+            value(f"{label}.func", lambda: f.func, depth)
+            for i in range(len(f.args)):
+                value(f"{label}.args[{i}]", lambda i=i: f.args[i], depth)
+            for k in f.keywords:
+                value(f"{label}.keywords[{k!r}]", lambda k=k: f.keywords[k], depth)
+            return
+        if isinstance(f, types.MethodType):
+            value(f"{label}.__self__", lambda: f.__self__, depth)
+            f = f.__func__
+        f = inspect.unwrap(f) if isinstance(f, types.FunctionType) else f
+        if not isinstance(f, types.FunctionType):
+            return
+        for name, cell in zip(f.__code__.co_freevars, f.__closure__ or ()):
+            value(name, lambda c=cell: c.cell_contents, depth)
+        for name in f.__code__.co_names if f.__module__ == module else ():
+            if name in f.__globals__ and not isinstance(f.__globals__[name], (types.ModuleType, type)):
+                value(name, lambda g=f.__globals__, k=name: g[k], depth)
+
+    module = getattr(inspect.unwrap(fn) if isinstance(fn, types.FunctionType) else fn, "__module__", None)
+    function(getattr(fn, "__name__", "fn"), fn, 0)
+    return found
+
+
+def is_plain(x) -> bool:
+    return isinstance(x, PLAIN) and (not isinstance(x, (tuple, frozenset)) or all(map(is_plain, x)))
+
+
+def now(watched: list) -> tuple:
+    """The watched values now: plain ones themselves, objects by identity."""
+    values = []
+    for _, read in watched:
+        try:
+            x = read()
+        except (ValueError, KeyError, AttributeError, IndexError):
+            x = None
+        values.append(x if is_plain(x) else ("object", id(x)))
+    return tuple(values)
+
+
+def same(a, b) -> bool:
+    return a == b or (a != a and b != b)  # NaN is NaN
 
 
 class CudaGraph:
@@ -18,62 +110,44 @@ class CudaGraph:
     its next replay. The default CUDA generator is registered with each graph, so that a replay draws anew from it and
     advances it as `fn` would. A graph replays the networks it recorded: reset them in place, never by assignment.
 
-    A graph also keeps every number `fn` read while it was recorded. So what `fn` reads without taking it is watched
-    (`reads`): the plain values in its closure, the fields of a dataclass there (args) and its optimizers'
-    hyperparameters (lr, betas, ...); a replay after one of them changed stops, naming it: a value that changes goes
-    in as a tensor, which a graph reads anew at each replay (an optimizer's lr: a tensor changed in place)."""
+    A graph also keeps every number `fn` read while it was recorded, and the objects it read. So what `fn` reads
+    without taking it is watched (`probes`: its closure, the globals it names, its helpers' and what they hold: args'
+    fields, optimizers' hyperparameters, networks' modes); a replay after one of them changed (within CHECK_EVERY
+    replays) stops, naming it: a value that changes goes in as a tensor changed in place, which a graph reads anew at
+    each replay (an optimizer's lr: a tensor, .fill_(new_lr))."""
+
+    CHECK_EVERY = 10  # replays between two looks at what the recorded update read (a look costs ~10-70 us on a CPU)
 
     def __init__(self, fn, warmup: int = 3, max_graphs: int = 8):
         self.fn, self.warmup, self.max_graphs = fn, warmup, max_graphs
-        self.calls, self.graphs, self.inputs, self.outputs, self.recorded, self.fingerprints = {}, {}, {}, {}, {}, {}
-
-    def closure(self) -> dict:
-        """{name: value} of the variables `fn` reads from the function that defined it (main's: args, optimizers, ...)."""
-        code, cells = getattr(self.fn, "__code__", None), getattr(self.fn, "__closure__", None) or ()
-        found = {}
-        for name, cell in zip(code.co_freevars if code else (), cells):
-            try:
-                found[name] = cell.cell_contents
-            except ValueError:  # a cell not yet filled
-                pass
-        return found
-
-    def reads(self) -> dict:
-        """{name: value} of what `fn` reads that is not an argument and that a graph keeps as recorded: the plain values
-        in its closure, the fields of a dataclass there (args), its optimizers' hyperparameters (lr, betas, ...), and
-        which object each other variable there is."""
-        found = {}
-        for name, value in self.closure().items():
-            if isinstance(value, torch.optim.Optimizer):
-                for i, group in enumerate(value.param_groups):
-                    found.update({f"{name}.param_groups[{i}]['{k}']": v for k, v in group.items() if isinstance(v, PLAIN)})
-            elif dataclasses.is_dataclass(value) and not isinstance(value, type):
-                found.update({f"{name}.{k}": v for k, v in vars(value).items() if isinstance(v, PLAIN)})
-            found[name] = value if isinstance(value, PLAIN) else f"the object {id(value):#x}"
-        return found
-
-    def fingerprint(self) -> list:
-        """reads() in a form that compares quickly (each replay does): containers copied, compared by identity within."""
-        values = []
-        for value in self.closure().values():
-            if isinstance(value, torch.optim.Optimizer):
-                values.append([dict(group) for group in value.param_groups])
-            elif dataclasses.is_dataclass(value) and not isinstance(value, type):
-                values.append(dict(vars(value)))
-            values.append(value if isinstance(value, PLAIN) else id(value))
-        return values
+        self.calls, self.graphs, self.inputs, self.outputs, self.watched, self.recorded = {}, {}, {}, {}, {}, {}
+        self.replays = {}
 
     def check_reads(self, key: tuple):
-        """Stops a replay of the graph recorded for `key` if something it read as a constant has changed since."""
-        if self.fingerprint() == self.fingerprints[key]:
+        """Stops a replay of the graph recorded for `key` if something it read as a constant has changed since (looked
+        at every CHECK_EVERY replays: a change stops the run within that many updates)."""
+        self.replays[key] = self.replays.get(key, 0) + 1
+        if self.replays[key] % self.CHECK_EVERY != 1:
             return
-        now, then = self.reads(), self.recorded[key]
-        name = next((n for n in {**then, **now} if now.get(n) != then.get(n)), "a value in its closure")
+        values = now(self.watched[key])
+        if values == self.recorded[key]:
+            return
+        for (label, _), then, value in zip(self.watched[key], self.recorded[key], values):
+            if not same(then, value):
+                break
+        else:
+            return  # only a NaN read anew
+        if isinstance(then, tuple) and then[:1] == ("object",):
+            raise ValueError(
+                f"CudaGraph({getattr(self.fn, '__name__', self.fn)}): `{label}` is another object than when the graph "
+                "was recorded, and the graph replays the one it recorded: keep the object and change what it holds in "
+                "place (a network or optimizer: load_state_dict(fresh.state_dict()); a tensor: .copy_(new))"
+            )
         raise ValueError(
-            f"CudaGraph({getattr(self.fn, '__name__', self.fn)}): `{name}` was {then.get(name)!r} when the graph was "
-            f"recorded and is {now.get(name)!r} now; a graph replays the values it recorded: make a value that changes a "
-            "tensor, changed in place (an optimizer's lr: torch.tensor(lr, device=...), then .fill_(new_lr)), which the "
-            "graph reads anew at each replay"
+            f"CudaGraph({getattr(self.fn, '__name__', self.fn)}): `{label}` was {then!r} when the graph was recorded and "
+            f"is {value!r} now; a graph replays the values it recorded: make a value that changes a tensor, changed in "
+            "place (an optimizer's lr: torch.tensor(lr, device=...), then .fill_(new_lr)), which the graph reads anew at "
+            "each replay"
         )
 
     @staticmethod
@@ -113,7 +187,8 @@ class CudaGraph:
                 torch.cuda.current_stream().wait_stream(stream)
                 return outputs
             self.inputs[key] = [self.clone(x) for x in inputs]
-            self.recorded[key], self.fingerprints[key] = self.reads(), self.fingerprint()
+            self.watched[key] = probes(self.fn)
+            self.recorded[key] = now(self.watched[key])
             self.graphs[key] = torch.cuda.CUDAGraph()
             with torch.cuda.graph(self.graphs[key]):  # records the kernels without running them
                 self.outputs[key] = self.fn(*self.inputs[key])

@@ -100,20 +100,32 @@ def check_seeds_dimension(fn, args, n: int):
 
 
 def python_draws() -> tuple:
-    """The states of the generators a vmap cannot draw from per seed: Python's and NumPy's global ones."""
+    """The states of the generators a vmap cannot draw from per seed: Python's and NumPy's global ones (a Generator
+    of a fork's own, np.random.default_rng(), is not watched)."""
     return random.getstate(), np.random.get_state(legacy=False)
 
 
-def same_draws(before: tuple, after: tuple) -> bool:
-    (python_before, numpy_before), (python_after, numpy_after) = before, after
-    same_numpy = all(np.array_equal(numpy_before["state"][k], numpy_after["state"][k]) for k in ("key", "pos")) and all(
-        numpy_before[k] == numpy_after[k] for k in ("has_gauss", "gauss")
-    )
-    return python_before == python_after and same_numpy
+def same_state(a, b) -> bool:
+    """Two generator states (nested dicts and tuples of arrays, numbers and strings) are the same."""
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(same_state(a[k], b[k]) for k in a)
+    if isinstance(a, tuple) and any(isinstance(x, (dict, np.ndarray)) for x in a):
+        return isinstance(b, tuple) and len(a) == len(b) and all(same_state(x, y) for x, y in zip(a, b))
+    if isinstance(a, np.ndarray):
+        return isinstance(b, np.ndarray) and np.array_equal(a, b)
+    return a == b
 
 
-# how many calls of a per-seed function (with several seeds) are watched for draws from Python's or NumPy's generator
+# how many calls of each per-seed function (with several seeds) are watched for draws from Python's or NumPy's
+# generator: counted by the function's code, since the scripts wrap it anew at every call (per_seed(fn)(...))
 WATCHED_CALLS = 10
+watched_calls = {}
+
+
+def code_of(fn):
+    """What identifies a per-seed function across its wrappings: its code (a network: its forward's)."""
+    fn = getattr(fn, "__func__", fn)  # a bound method
+    return getattr(fn, "__code__", None) or getattr(type(fn).forward, "__code__", type(fn))
 
 
 def vmap_refusal(fn, n: int, error: RuntimeError) -> RuntimeError:
@@ -132,11 +144,9 @@ def per_seed(fn):
     of them) carry a leading seeds dimension, its networks come from stack_seeds, what it returns gains that dimension.
     With several seeds, what vmap cannot run per seed stops with one line: a value read into Python, and (on the
     first WATCHED_CALLS calls) a draw from Python's or NumPy's generator, which would be one draw all seeds share."""
-    calls = 0
 
     @functools.wraps(fn)
     def run(*args):
-        nonlocal calls
         n = num_seeds(fn, args)
         check_seeds_dimension(fn, args, n)
         if n == 1:  # as written, on seed 0's share of each tensor
@@ -150,7 +160,8 @@ def per_seed(fn):
         def one_seed(state, *args):
             return functional_call(networks, state, (fn, args))
 
-        calls += 1
+        code = code_of(fn)
+        watched_calls[code] = calls = watched_calls.get(code, 0) + 1
         before = python_draws() if calls <= WATCHED_CALLS else None
         try:
             out = vmap(one_seed, in_dims=(0, *in_dims), randomness="different")(state, *args)
@@ -158,7 +169,7 @@ def per_seed(fn):
             if str(error).startswith("vmap:") or "doesn't have storage" in str(error):  # .tolist() gives the latter
                 raise vmap_refusal(fn, n, error) from error
             raise
-        if before is not None and not same_draws(before, python_draws()):
+        if before is not None and not same_state(before, python_draws()):
             raise RuntimeError(
                 f"per_seed({getattr(fn, '__name__', fn)}) with {n} seeds drew from Python's or NumPy's random generator "
                 "(random, np.random), which a vmap over the seeds runs once, for all of them: one draw the seeds would "
@@ -182,9 +193,10 @@ def stacked_seeds(grads: list) -> int:
     stacked = {id(p.grad): p.num_seeds for p in list(STACKED.values()) if p.grad is not None}
     found = {stacked.get(id(g), 0) for g in grads}
     if len(found) > 1:
+        counts = ", ".join(f"{n} seeds" if n else "no seeds dimension" for n in sorted(found))
         raise RuntimeError(
-            "clip_grad_norm_: the gradients of parameters stacked for several seeds (stack_seeds) with others; one norm "
-            "over them would mix the seeds: clip the stacked networks' parameters in a call of their own"
+            f"clip_grad_norm_: gradients of parameters stacked otherwise ({counts}) in one call; one norm over them "
+            "would mix the seeds: clip each process's stacked networks in a call of their own"
         )
     return found.pop() if found else 0
 
@@ -195,6 +207,7 @@ def get_total_norm(tensors, norm_type=2.0, error_if_nonfinite=False, foreach=Non
     n = stacked_seeds(tensors)
     if not n:
         return torch_total_norm(tensors, norm_type, error_if_nonfinite, foreach)
+    norm_type = float(norm_type)  # PyTorch takes 'inf' too
     norms = torch.stack([torch.linalg.vector_norm(t.reshape(n, -1), norm_type, dim=1) for t in tensors])
     total = torch.linalg.vector_norm(norms, norm_type, dim=0)  # [num_seeds]: each seed's norm over its gradients
     if error_if_nonfinite and not torch.isfinite(total).all():
@@ -209,7 +222,7 @@ def clip_grads_with_norm_(parameters, max_norm, total_norm, foreach=None):
     n = stacked_seeds(grads)
     if not n:
         return torch_clip_grads_with_norm(parameters, max_norm, total_norm, foreach)
-    coefficient = (float(max_norm) / (total_norm + 1e-6)).clamp(max=1.0)  # one per seed (or one for all, if given so)
+    coefficient = (float(max_norm) / (torch.as_tensor(total_norm) + 1e-6)).clamp(max=1.0)  # one per seed (or one for all)
     for g in grads:
         g.mul_(coefficient.reshape(-1, *[1] * (g.dim() - 1)))
 
@@ -226,14 +239,33 @@ torch.nn.utils.get_total_norm, torch.nn.utils.clip_grads_with_norm_ = get_total_
 torch_fans = init._calculate_fan_in_and_fan_out
 
 
+def seeds_in(tensor: torch.Tensor) -> int:
+    """How many seeds a tensor holds stacked: a stacked parameter's number, also for its .data or .detach() (the same
+    memory, the same shape); 1 for any other tensor and for one seed's slice, weight[k]. Another part of a stacked
+    parameter (weight[:, :3]) is refused: no initialisation of it is one seed's."""
+    if getattr(tensor, "num_seeds", 1) > 1:
+        return tensor.num_seeds
+    for p in list(STACKED.values()):
+        if p.device == tensor.device and p.untyped_storage().data_ptr() == tensor.untyped_storage().data_ptr():
+            if tensor.shape == p.shape and tensor.data_ptr() == p.data_ptr():
+                return p.num_seeds
+            if tensor.shape != p.shape[1:]:
+                raise RuntimeError(
+                    f"nn.init on a part {list(tensor.shape)} of a parameter stacked for {p.num_seeds} seeds "
+                    f"{list(p.shape)}: initialise the whole parameter (each seed's slice as one seed's) or a seed's "
+                    "slice, weight[k]"
+                )
+    return 1
+
+
 def fans(tensor: torch.Tensor) -> tuple:
-    return torch_fans(tensor[0] if getattr(tensor, "num_seeds", 1) > 1 else tensor)
+    return torch_fans(tensor[0] if seeds_in(tensor) > 1 else tensor)
 
 
 def each_seed(initialise):
     @functools.wraps(initialise)
     def initialise_each_seed(tensor, *args, **kwargs):
-        if getattr(tensor, "num_seeds", 1) == 1:
+        if seeds_in(tensor) == 1:
             return initialise(tensor, *args, **kwargs)
         for seed_tensor in tensor:  # each a view into the stacked parameter, initialised in place
             initialise(seed_tensor, *args, **kwargs)
@@ -243,6 +275,21 @@ def each_seed(initialise):
 
 
 init._calculate_fan_in_and_fan_out = fans
+
+# a copy of a stacked network (copy.deepcopy(qf): a fork's second target, say) stays stacked, for the clipping and
+# the initialisations above
+torch_parameter_deepcopy = nn.Parameter.__deepcopy__
+
+
+def parameter_deepcopy(self, memo):
+    copied = torch_parameter_deepcopy(self, memo)
+    if getattr(self, "num_seeds", 1) > 1 and getattr(copied, "num_seeds", 1) == 1:
+        copied.num_seeds = self.num_seeds
+        STACKED[id(copied)] = copied
+    return copied
+
+
+nn.Parameter.__deepcopy__ = parameter_deepcopy
 for name in ("orthogonal_", "sparse_", "eye_", "dirac_"):
     setattr(init, name, each_seed(getattr(init, name)))
 

@@ -3,6 +3,7 @@ right numbers, or stops where it happens with one line that names the misuse and
 one seed and with several."""
 
 import dataclasses
+import functools
 import os
 import random
 import subprocess
@@ -134,66 +135,138 @@ def test_a_graphed_update_given_a_changing_number_stops_saying_to_pass_a_tensor(
     assert "pass a number that changes from call to call as a tensor" in message
 
 
-class Replayed:
-    """A recorded graph's stand-in (recording needs a GPU): counts its replays."""
+class FakeGraph:
+    """torch.cuda.CUDAGraph's stand-in (recording needs a GPU): counts its replays."""
+
+    made = []
 
     def __init__(self):
         self.replays = 0
+        FakeGraph.made.append(self)
 
     def replay(self):
         self.replays += 1
 
 
-def recorded(update, *inputs):
-    """`update` as CudaGraph leaves it once it has recorded the graph of these inputs' key (faked: no GPU here)."""
-    key = update.key(*inputs)
-    update.graphs[key], update.inputs[key], update.outputs[key] = Replayed(), [update.clone(x) for x in inputs], {}
-    update.recorded[key], update.fingerprints[key] = update.reads(), update.fingerprint()
-    return update.graphs[key]
+class FakeStream:
+    def wait_stream(self, other):
+        pass
 
 
-@pytest.mark.parametrize("change", ["lr", "args.tau", "a number", "a network bound anew", "a tensor lr"])
-def test_a_graphed_update_stops_when_what_it_read_as_a_constant_changes(change):
+@pytest.fixture
+def fake_cuda(monkeypatch):
+    """CudaGraph's CUDA calls made stand-ins, so that its own warm-up, recording and replay logic runs on a CPU (the
+    recorded graph runs the update once, at recording; a replay computes nothing)."""
+    import contextlib
+
+    FakeGraph.made = []
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", FakeGraph)
+    monkeypatch.setattr(torch.cuda, "graph", lambda graph: contextlib.nullcontext())
+    monkeypatch.setattr(torch.cuda, "Stream", FakeStream)
+    monkeypatch.setattr(torch.cuda, "stream", lambda stream: contextlib.nullcontext())
+    monkeypatch.setattr(torch.cuda, "current_stream", FakeStream)
+    return FakeGraph.made
+
+
+def recorded_and_replayed(update, *inputs):
+    """Calls update until its graph for these inputs is recorded and replayed once; returns that graph."""
+    for _ in range(update.warmup + 1):  # eager warm-up calls, then the one that records and replays
+        update(*inputs)
+    (graph,) = FakeGraph.made
+    assert graph.replays == 1
+    return graph
+
+
+TAU = 0.005  # a module-level number a helper of the update reads
+
+
+def scaled_by_tau(x):
+    return x * TAU
+
+
+@dataclasses.dataclass(slots=True)
+class SlotArgs:
+    gamma: float = 0.99
+
+
+CHANGES = {  # what a fork changes mid-run: the name the stop gives (None: the graph reads it anew, no stop)
+    "lr": "optimizer.param_groups[0]['lr']",
+    "args.tau": "args.tau",
+    "a number": "scale",
+    "a network bound anew": "net",
+    "a tensor lr changed in place": None,
+    "a module-level number a helper reads": "TAU",
+    "a partial bound anew": "helper",
+    "net.eval()": "net.training",
+    "a field of slots args": "slot_args.gamma",
+    "a NaN set to NaN": None,
+    "a number in a dict": "config['beta']",
+}
+
+
+@pytest.mark.parametrize("change", list(CHANGES))
+def test_a_graphed_update_stops_when_what_it_read_as_a_constant_changes(change, fake_cuda, monkeypatch):
     """A recorded graph keeps every number the update read while it was recorded: a learning-rate schedule on a float
-    lr, a flag changed mid-run, a number main rebinds would all be replayed as they were, without a word. The replay
-    after such a change stops, naming the value; a value the update takes as a tensor and that changes in place (a
-    tensor lr, .fill_) is read anew and passes."""
-    args = td3.Args()
+    lr, a flag changed mid-run, a number main rebinds, a global a helper reads, a network put in eval mode would all be
+    replayed as they were, without a word. The first replay after such a change stops, naming the value; a value
+    the update takes as a tensor changed in place (a tensor lr, .fill_) is read anew and passes."""
+    import math
+
+    args, slot_args, config = td3.Args(), SlotArgs(), {"beta": 0.5}
     net = nn.Linear(3, 1)
-    optimizer = torch.optim.Adam(net.parameters(), lr=torch.tensor(1e-3) if change == "a tensor lr" else 1e-3)
-    scale = 2.0
+    optimizer = torch.optim.Adam(net.parameters(), lr=torch.tensor(1e-3) if "tensor lr" in change else 1e-3)
+    scale, nan = 2.0, math.nan
+    helper = functools.partial(lambda x, factor: x * factor, 1.0)
 
     def update(batch, policy_step):
-        return {"loss": net(batch).sum() * scale * args.tau, "lr": optimizer.param_groups[0]["lr"]}
+        loss = scaled_by_tau(helper(net(batch).sum()) * scale * args.tau * slot_args.gamma * config["beta"] + nan)
+        return {"loss": loss, "lr": optimizer.param_groups[0]["lr"]}
 
     def rebind():
-        nonlocal net, scale
+        nonlocal net, scale, nan, helper
         if change == "a network bound anew":
             net = nn.Linear(3, 1)
-        else:
+        elif change == "a number":
             scale = 3.0
+        elif change == "a NaN set to NaN":
+            nan = float("nan")
+        elif change == "a partial bound anew":
+            helper = functools.partial(helper.func, 2.0)
 
     graphed = CudaGraph(update)
-    graph = recorded(graphed, torch.ones(2, 3), True)
-    graphed(torch.ones(2, 3), True)
-    assert graph.replays == 1
+    graph = recorded_and_replayed(graphed, torch.ones(2, 3), True)
+    for _ in range(4):  # replays before the change: the watch is not only the first replay's
+        graphed(torch.ones(2, 3), True)
     if change == "lr":
         optimizer.param_groups[0]["lr"] = 5e-4  # what a scheduler does
     elif change == "args.tau":
         args.tau = 0.01
-    elif change == "a tensor lr":
-        optimizer.param_groups[0]["lr"].fill_(5e-4)  # in place: the graph reads it anew
-        graphed(torch.ones(2, 3), True)
-        assert graph.replays == 2
-        return
+    elif change == "a tensor lr changed in place":
+        optimizer.param_groups[0]["lr"].fill_(5e-4)
+    elif change == "a module-level number a helper reads":
+        monkeypatch.setattr(sys.modules[__name__], "TAU", 0.01)
+    elif change == "net.eval()":
+        net.eval()
+    elif change == "a field of slots args":
+        slot_args.gamma = 0.9
+    elif change == "a number in a dict":
+        config["beta"] = 0.25
     else:
         rebind()
+    calls = CudaGraph.CHECK_EVERY + 1  # a change is looked for every CHECK_EVERY replays
+    if CHANGES[change] is None:
+        for _ in range(calls):
+            graphed(torch.ones(2, 3), True)
+        assert graph.replays == 1 + 4 + calls
+        return
     with pytest.raises(ValueError) as refused:
-        graphed(torch.ones(2, 3), True)
+        for _ in range(calls):
+            graphed(torch.ones(2, 3), True)
     message = str(refused.value)
-    named = {"lr": "optimizer.param_groups[0]['lr']", "args.tau": "args.tau", "a number": "scale"}.get(change, "net")
-    assert "\n" not in message and message.startswith(f"CudaGraph(update): `{named}` was ")
-    assert "torch.tensor(lr, device=...)" in message and graph.replays == 1  # stopped before replaying
+    assert "\n" not in message and message.startswith(f"CudaGraph(update): `{CHANGES[change]}` ")
+    bound_anew = change in ("a network bound anew", "a partial bound anew")
+    advice = "load_state_dict(fresh.state_dict())" if bound_anew else "torch.tensor(lr, device=...)"
+    assert advice in message and graph.replays < 1 + 4 + CudaGraph.CHECK_EVERY  # stopped within CHECK_EVERY replays
 
 
 @pytest.mark.parametrize("num_seeds", [1, 2])
@@ -367,14 +440,20 @@ def two_layers():
     return [nn.Sequential(nn.Linear(3, 4), nn.Tanh(), nn.Linear(4, 1))]
 
 
-@pytest.mark.parametrize("style", ["nn.utils", "imported"])
-def test_clip_grad_norm_clips_each_seed_by_its_own_norm(style):
-    """A fork's torch.nn.utils.clip_grad_norm_ (or the function imported by name, before rl_utils) in a process of
-    three seeds clips each seed's gradients by that seed's norm, as the seed's single-seed run would, and returns the
-    seeds' norms; one seed's gradients are PyTorch's own computation, bit for bit."""
-    from torch.nn.utils import clip_grad_norm_ as imported
+def two_steps(parameters, max_norm):
+    """clip_grad_norm_ as PyTorch's two public parts: the norm, then the clipping."""
+    parameters = list(parameters)
+    norm = nn.utils.get_total_norm([p.grad for p in parameters])
+    nn.utils.clip_grads_with_norm_(parameters, max_norm, norm)
+    return norm
 
-    clip = {"nn.utils": nn.utils.clip_grad_norm_, "imported": imported}[style]
+
+@pytest.mark.parametrize("style", ["clip_grad_norm_", "two steps"])
+def test_clip_grad_norm_clips_each_seed_by_its_own_norm(style):
+    """A fork's torch.nn.utils.clip_grad_norm_ (or its two public parts, get_total_norm and clip_grads_with_norm_)
+    in a process of three seeds clips each seed's gradients by that seed's norm, as the seed's single-seed run would,
+    and returns the seeds' norms; one seed's gradients are PyTorch's own computation, bit for bit."""
+    clip = {"clip_grad_norm_": nn.utils.clip_grad_norm_, "two steps": two_steps}[style]
     seeds = [4, 5, 6]
     torch.manual_seed(4)
     stacked = stack_seeds(two_layers, seeds, torch.device("cpu"))[0]
@@ -404,6 +483,22 @@ def test_clip_grad_norm_clips_each_seed_by_its_own_norm(style):
         assert torch.equal(p.grad, g * torch.clamp(0.5 / (expected + 1e-6), max=1.0))
 
 
+def test_a_copy_of_a_stacked_network_and_the_inf_norm_are_clipped_per_seed_too():
+    """A fork's deepcopy of a stacked network (a second target, say) is clipped per seed as the original; so is the
+    largest-entry norm, norm_type='inf'."""
+    import copy
+
+    stacked = copy.deepcopy(stack_seeds(two_layers, [4, 5, 6], torch.device("cpu"))[0])
+    x = torch.randn(3, 16, 3) * torch.tensor([1.0, 10.0, 100.0]).view(3, 1, 1)
+    per_seed(lambda x, net: net(x).pow(2).mean())(x, stacked).sum().backward()
+    largest = torch.stack([torch.cat([p.grad[k].flatten() for p in stacked.parameters()]).abs().max() for k in range(3)])
+    norms = nn.utils.clip_grad_norm_(stacked.parameters(), 0.1, norm_type="inf")
+    torch.testing.assert_close(norms, largest)
+    for k in range(3):
+        after = torch.cat([p.grad[k].flatten() for p in stacked.parameters()]).abs().max()
+        torch.testing.assert_close(after, torch.clamp(largest[k], max=0.1), rtol=1e-5, atol=0)
+
+
 def test_clip_grad_norm_over_stacked_and_plain_parameters_together_is_refused_in_one_line():
     stacked = stack_seeds(two_layers, [4, 5], torch.device("cpu"))[0]
     plain = nn.Linear(3, 1)
@@ -417,18 +512,34 @@ def test_clip_grad_norm_over_stacked_and_plain_parameters_together_is_refused_in
 def test_a_reset_by_nn_init_initialises_each_seed_as_a_one_seed_tensor():
     """A fork that resets a layer mid-run with nn.Linear's reset_parameters() or torch.nn.init (as primacy-bias
     resets do): with three seeds stacked, each seed's slice is initialised as a one-seed weight would be, its fans
-    those of [out, in] (not [3, out, in], which would shrink kaiming's bound by sqrt(7)), orthogonal_ per seed."""
+    those of [out, in] (not [3, out, in], which would shrink kaiming's bound by sqrt(7)), orthogonal_ per seed; also
+    through .data and on a deepcopy of the network. A part of the stacked weight that is no seed's is refused."""
+    import copy
+    import math
+
+    torch.manual_seed(0)
     seeds = [4, 5, 6]
     layer = stack_seeds(lambda: [nn.Linear(5, 7)], seeds, torch.device("cpu"))[0]
     before = layer.weight
-    layer.reset_parameters()  # kaiming_uniform_(a=sqrt(5)): |w| <= 1/sqrt(fan_in); the bias too
-    bound = 5**-0.5
-    assert layer.weight is before and layer.weight.abs().max() <= bound and layer.weight.abs().max() > 0.9 * bound
-    assert layer.bias.abs().max() <= bound and layer.bias.abs().max() > 0.8 * bound
-    for k in range(3):  # each seed its own draw, spread as a one-seed layer's
-        assert layer.weight[k].abs().max() > 0.8 * bound and not torch.equal(layer.weight[k], layer.weight[(k + 1) % 3])
+    bound = 5**-0.5  # kaiming_uniform_(a=sqrt(5)): |w| <= 1/sqrt(fan_in); the bias too
+    for reset in (
+        layer.reset_parameters,
+        lambda: nn.init.kaiming_uniform_(layer.weight.data, a=math.sqrt(5)),
+        lambda: copy.deepcopy(layer).reset_parameters(),
+    ):
+        reset()
+        assert layer.weight is before
+    copied = copy.deepcopy(layer)
+    copied.reset_parameters()
+    for net in (layer, copied):
+        for k in range(3):  # each seed its own draw, spread as a one-seed layer's
+            assert 0.8 * bound < net.weight[k].abs().max() <= bound
+        assert net.bias.abs().max() <= bound and net.bias.abs().max() > 0.6 * bound
+    assert not torch.equal(layer.weight[0], layer.weight[1])
     nn.init.xavier_uniform_(layer.weight)
-    assert layer.weight.abs().max() <= (6 / (5 + 7)) ** 0.5
+    assert 0.8 * (6 / (5 + 7)) ** 0.5 < layer.weight.abs().max() <= (6 / (5 + 7)) ** 0.5
+    with pytest.raises(RuntimeError, match=r"nn.init on a part \[3, 7, 3\] of a parameter stacked for 3 seeds"):
+        nn.init.kaiming_uniform_(layer.weight.data[:, :, :3])
     nn.init.orthogonal_(layer.weight)
     for k in range(3):
         torch.testing.assert_close(layer.weight[k].T @ layer.weight[k], torch.eye(5), atol=1e-5, rtol=0)

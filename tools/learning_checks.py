@@ -18,6 +18,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 
 import numpy as np
 
@@ -129,14 +130,23 @@ def main(argv=None):
     os.makedirs(os.path.dirname(out), exist_ok=True)
     jobs = [(script, seed) for script in args.scripts for seed in args.seeds]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    running = []
-    for script, seed in jobs:
-        while len(running) >= args.workers:
-            running.pop(0).wait()
-        flags = ["--one", script, str(seed), "--extra-steps", str(args.extra_steps), "--out", out]
-        running.append(subprocess.Popen([sys.executable, os.path.abspath(__file__), *flags], env=env))
-    for process in running:
-        process.wait()
+    running, failed = [], []
+    for script, seed in jobs:  # each run writes a file of its own; they are appended to --out in order at the end
+        while sum(process.poll() is None for _, process in running) >= args.workers:
+            time.sleep(1)
+        flags = ["--one", script, str(seed), "--extra-steps", str(args.extra_steps), "--out", f"{out}.{script}_{seed}"]
+        running.append(((script, seed), subprocess.Popen([sys.executable, os.path.abspath(__file__), *flags], env=env)))
+    with open(out, "a") as merged:
+        for (script, seed), process in running:
+            part = f"{out}.{script}_{seed}"
+            if process.wait() != 0 or not os.path.isfile(part):
+                failed.append(f"{script} seed {seed}")
+                continue
+            with open(part) as f:
+                merged.write(f.read())
+            os.remove(part)
+    if failed:
+        sys.exit(f"error: {', '.join(failed)} failed (their output is above); the others are in {args.out}")
     print(summary(read(out)))
 
 
