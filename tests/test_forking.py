@@ -16,7 +16,7 @@ import torch.nn as nn
 
 import sac_continuous_action as sac
 import td3_continuous_action as td3
-from conftest import REPO, needs_cuda, parse, script_command
+from conftest import OFF_POLICY, REPO, load, needs_cuda, parse, script_command, small_args
 from rl_utils import CudaGraph, parse_args, per_seed, stack_seeds
 import rl_utils.seeds as seeds_module
 from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
@@ -550,3 +550,17 @@ def test_a_reset_by_nn_init_initialises_each_seed_as_a_one_seed_tensor():
     plain = torch.empty(7, 5)
     torch.nn.init.orthogonal_(plain)
     assert torch.equal(one.weight.detach(), plain)  # one seed: PyTorch's own initialisation
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", OFF_POLICY)
+def test_the_scripts_own_graphed_updates_pass_the_watch(script, fake_cuda, tmp_path, monkeypatch):
+    """Each off-policy script's own update under --cudagraphs (CUDA stand-ins, on a CPU) replays to the end of a run
+    without the watch stopping it: nothing it reads changes between replays (OPARL's resets and SAC's alpha are made
+    in place), so the watch stops a fork's change and no run of the scripts as they are."""
+    monkeypatch.chdir(tmp_path)
+    module = load(script)
+    extra = {"reset_frequency": 50} if "reset_frequency" in {f.name for f in dataclasses.fields(module.Args)} else {}
+    args = small_args(module, env_id="Pendulum-v1", total_timesteps=600, learning_starts=300, cudagraphs=True, **extra)
+    module.main(args)
+    assert fake_cuda and sum(graph.replays for graph in fake_cuda) > 2 * CudaGraph.CHECK_EVERY
