@@ -31,10 +31,11 @@ LEARNING_CHECKED = [s for s in SCRIPTS if declared(BUDGETS, s)]
 EVALUATIONS = 3  # the last three: 500 steps apart (the off-policy scripts), a rollout of 2048 apart (the PPO family)
 
 
-def learning_run(script: str, seed: int, total_timesteps=None) -> list:
+def learning_run(script: str, seed: int, total_timesteps=None, last=None) -> list:
     """A learning check's run (its budget, or total_timesteps), evaluated every 500 steps (a rollout for the PPO
-    family): [(step, the 10 episode returns), ...]. Evaluations draw nothing: the training is the same at any
-    frequency. Run from a scratch folder (its runs/ is written there)."""
+    family): [(step, the 10 episode returns), ...], of the `last` evaluations only if given (the ones before are not
+    run: an evaluation re-seeds its envs, so the ones kept are those of a run that made them all). Evaluations draw
+    nothing: the training is the same at any frequency. Run from a scratch folder (its runs/ is written there)."""
     module = load(script)
     env_id, total, learning_starts, batch_size, _ = declared(BUDGETS, script)
     total = total_timesteps or total
@@ -46,10 +47,14 @@ def learning_run(script: str, seed: int, total_timesteps=None) -> list:
     args = small_args(
         module, env_id=env_id, seed=seed, total_timesteps=total, eval_episodes=10, run_name=f"run{seed}", **quick
     )
+    skipped = len(range(0, total, args.eval_frequency)) + 1 - last if last else 0  # the loop's, then the final one
     evaluations = []
     evaluate = module.evaluate
 
     def recorded(*a, **k):  # the script's own evaluation, its episodes kept
+        if len(evaluations) < skipped:
+            evaluations.append(None)
+            return np.full((1, args.eval_episodes), np.nan)
         returns = evaluate(*a, **k)
         evaluations.append(returns[0].copy())
         return returns
@@ -59,8 +64,10 @@ def learning_run(script: str, seed: int, total_timesteps=None) -> list:
         logged = module.main(args)["eval_returns"]
     finally:
         module.evaluate = evaluate
-    assert [mean for _, mean in logged] == pytest.approx([r.mean() for r in evaluations])
-    return [(step, returns) for (step, _), returns in zip(logged, evaluations)]
+    kept = [(step, returns) for (step, _), returns in zip(logged, evaluations) if returns is not None]
+    assert len(logged) == len(evaluations) and len(kept) == len(logged) - skipped
+    assert [mean for (_, mean), r in zip(logged, evaluations) if r is not None] == pytest.approx([r.mean() for _, r in kept])
+    return kept
 
 
 def passes(evaluations: list, threshold: float) -> bool:
@@ -70,7 +77,7 @@ def passes(evaluations: list, threshold: float) -> bool:
 @pytest.mark.parametrize("script", LEARNING_CHECKED)
 def test_learns_a_small_task(script, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    evaluations = learning_run(script, seed=1)
+    evaluations = learning_run(script, seed=1, last=EVALUATIONS)
     threshold = declared(BUDGETS, script)[-1]
     medians = [round(float(np.median(returns)), 1) for _, returns in evaluations[-EVALUATIONS:]]
     assert passes(evaluations, threshold), f"the last {EVALUATIONS} evaluations' median episodes {medians} <= {threshold}"
