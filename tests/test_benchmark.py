@@ -32,8 +32,10 @@ TINY = [
 
 
 def bench_env(**extra) -> dict:
-    """The environment a sweep runs in: this Python first on PATH, plus `extra`."""
-    return {**os.environ, "PATH": os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"], **extra}
+    """The environment a sweep runs in: this Python first on PATH, without the suite's own LD_PRELOAD (a suite run
+    under tools/mkl_avx512.sh, whose library a sweep would name in its logs), plus `extra`."""
+    env = {k: v for k, v in os.environ.items() if k != "LD_PRELOAD"}
+    return {**env, "PATH": os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"], **extra}
 
 
 def bench(*flags, cwd, timeout=600, benchmark=BENCHMARK, env=None):
@@ -516,6 +518,14 @@ def test_seeds_per_process_one_changes_nothing(fake, tmp_path):
             f"command: --env-id Pendulum-v1 --seed {seed} --total-timesteps 300 --run-name {fake_name(seed)} "
             "--checkpoint-frequency 10000\n"
         )
+
+
+def test_a_sweep_under_the_mkl_wrapper_says_so_in_each_runs_log(fake, tmp_path):
+    library = tmp_path / "libmkl_intel_cpu_true.so"  # the wrapper's library, by name: an empty file the loader skips
+    library.touch()
+    result = fake(*FAKE, "--seeds", "1", env={"LD_PRELOAD": str(library)})
+    assert "summary: 1 done" in result.stdout, result.stdout + result.stderr
+    assert (fake.work / "logs" / f"{fake_name(1)}.log").read_text().startswith("float32 kernels: mkl-avx512\n")
 
 
 @pytest.mark.slow
