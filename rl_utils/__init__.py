@@ -4,7 +4,7 @@ draw other noise than single-seed runs) and says so where they are. One module a
 
     cli          Args from the command line, checked (`parse_args`; `positive`, `at_least`, `within` for a
                  script's own `check_args`)
-    errors       a one-line stop on bad input (`fail`)
+    errors       a one-line stop on bad input (`fail`), and a refusal raised in a run that prints as one (`refusal`)
     envs         Gymnasium MuJoCo and DeepMind Control tasks as flat float32 envs (`make_env`), one per seed side
                  by side (`SeedEnvs`), and the deterministic evaluation loop (`evaluate`)
     buffers      the replay buffer of the off-policy scripts (`ReplayBuffer`, `Batch`)

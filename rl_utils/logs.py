@@ -11,7 +11,7 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from rl_utils.errors import fail
+from rl_utils.errors import fail, refusal
 from rl_utils.numerics import NonFiniteError
 
 
@@ -61,8 +61,17 @@ class Logs:
 
     def log(self, logs: dict, step: int):
         """Writes {tag: one value per seed (a tensor [num_seeds]), or one for all (a number)}, each seed's into its
-        run; a non-finite value stops the run (where --cudagraphs catches a NaN)."""
+        run; a non-finite value stops the run (where --cudagraphs catches a NaN). With several seeds a tensor of
+        another size (a 0-d one: a mean over the seeds?) stops in one line."""
         n = len(self.writers)
+        for tag, value in logs.items():
+            if n > 1 and isinstance(value, torch.Tensor) and value.numel() != n:
+                raise refusal(
+                    ValueError,
+                    f"run.log: `{tag}` is a tensor of shape {list(value.shape)} for {n} seeds: log one value per seed, "
+                    f"a tensor [{n}] (a mean over each seed's own dimensions, .mean(-1), not over the seeds; a Python "
+                    "number, such as a value read with .item(), is logged as every seed's)",
+                )
         values = {tag: torch.as_tensor(value).reshape(-1).broadcast_to(n).tolist() for tag, value in logs.items()}
         for tag, seed_values in values.items():
             if not all(math.isfinite(value) for value in seed_values):

@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import torch
+from torch.optim import lr_scheduler
 from tqdm import tqdm
 
 from rl_utils import checkpoints as ckpt
@@ -76,6 +77,7 @@ class Run:
             if isinstance(x, (torch.nn.Module, torch.optim.Optimizer)) and id(x) not in watched:
                 kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
                 fail(f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there")
+        self.check_schedulers()
         observations = None
         if self.checkpoints:
             observations = ckpt.restore(join_seeds(self.checkpoints, parts), self.env_list, nets, optimizers, parts)
@@ -94,8 +96,31 @@ class Run:
     def log_episodes(self, infos, step: int):
         self.logs.log_episodes(infos, step)
 
+    def check_schedulers(self):
+        """A learning-rate scheduler (torch.optim.lr_scheduler) of an optimizer that is checkpointed is checkpointed
+        too, among run.start's parts: else a resumed run would start its schedule again, silently. Found by the
+        optimizer's step, which a scheduler wraps, or (ReduceLROnPlateau, which does not) among main's names."""
+        if not self.args.checkpoint_frequency:
+            return
+        held = {id(part) for part in self.parts.values()}
+        held_optimizers = {id(getattr(part, "optimizer", None)) for part in self.parts.values()}
+        for name, x in self.caller.f_locals.items():
+            if isinstance(x, (lr_scheduler.LRScheduler, lr_scheduler.ReduceLROnPlateau)) and id(x) not in held:
+                fail(
+                    f"`{name}`, a learning-rate scheduler, is not in run.start's parts: a checkpoint would not hold where "
+                    f"its schedule is, and --resume would start it again; add it there (run.start(..., {name}={name}))"
+                )
+        for name, optimizer in self.optimizers.items():
+            if hasattr(optimizer.step, "_wrapped_by_lr_sched") and id(optimizer) not in held_optimizers:
+                fail(
+                    f"`{name}` has a learning-rate scheduler that run.start's parts do not hold: a checkpoint would not "
+                    "hold where its schedule is, and --resume would start it again; add the scheduler there "
+                    "(run.start(..., scheduler=scheduler))"
+                )
+
     def state(self, step: int) -> list:
         """One checkpoint per seed of the process's state at `step`."""
+        self.check_schedulers()
         state = ckpt.snapshot(self.script, self.args, self.env_list, step, self.nets, self.optimizers, self.parts)
         return split_seeds(state, self.parts, self.eval_returns, self.run_dirs)
 

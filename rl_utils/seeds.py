@@ -30,6 +30,8 @@ import torch.nn.utils.clip_grad as clip_grad
 from torch.func import functional_call, vmap
 from torch.utils._pytree import tree_flatten, tree_map
 
+from rl_utils.errors import refusal
+
 # every parameter stack_seeds stacked for several seeds, by id (gradient clipping finds their gradients); such a
 # parameter carries its number of seeds as `num_seeds`
 STACKED = weakref.WeakValueDictionary()
@@ -38,7 +40,9 @@ STACKED = weakref.WeakValueDictionary()
 def stack_seeds(networks, seeds: list, device: torch.device) -> list:
     """The networks `networks()` returns, built once per seed, each parameter and buffer stacked along a new leading
     dimension, on the device. Seed k's initial weights (and buffers, a random projection's say) are those of a
-    single-seed run of seed k; a parameter keeps its requires_grad. One seed's networks are the ones built."""
+    single-seed run of seed k; a parameter keeps its requires_grad; a layer two networks share (an encoder) stays
+    shared, stacked once. With several seeds, calling a network outside per_seed stops in one line. One seed's
+    networks are the ones built."""
     if len(seeds) == 1:
         built = [net.to(device) for net in networks()]
     else:
@@ -47,23 +51,46 @@ def stack_seeds(networks, seeds: list, device: torch.device) -> list:
             with torch.random.fork_rng(devices=[]):  # the process's own generator stays as it was seeded
                 torch.manual_seed(seed)
                 per_seed_nets.append(networks())
+        stacked_buffers = set()  # by id: a buffer of a layer two networks share is stacked once
         for nets in zip(*per_seed_nets):
             for name, param in list(nets[0].named_parameters()):
+                if id(param) in STACKED:  # a layer this network shares with one stacked before
+                    continue
                 stacked = torch.stack([net.get_parameter(name).detach() for net in nets])
                 owner, _, attr = name.rpartition(".")
                 stacked = nn.Parameter(stacked, requires_grad=param.requires_grad)
                 stacked.num_seeds = len(seeds)
                 STACKED[id(stacked)] = stacked
                 setattr(nets[0].get_submodule(owner), attr, stacked)
-            for name, _ in list(nets[0].named_buffers()):
+            for name, buffer in list(nets[0].named_buffers()):
+                if id(buffer) in stacked_buffers:
+                    continue
                 owner, _, attr = name.rpartition(".")
                 module = nets[0].get_submodule(owner)
                 persistent = attr not in module._non_persistent_buffers_set
                 module.register_buffer(attr, torch.stack([net.get_buffer(name) for net in nets]), persistent=persistent)
+                stacked_buffers.add(id(module.get_buffer(attr)))
         built = [net.to(device) for net in per_seed_nets[0]]
+        for net in built:
+            net.register_forward_pre_hook(called_through_per_seed)
     for net in built:
         net.num_seeds = len(seeds)  # per_seed's check of its arguments reads it
     return built
+
+
+# how many per_seed calls are running (a per-seed function may call another): a network stacked for several seeds
+# runs only inside one
+inside_per_seed = [0]
+
+
+def called_through_per_seed(module, inputs):
+    if not inside_per_seed[0]:
+        raise refusal(
+            RuntimeError,
+            f"{type(module).__name__}, stacked for {module.num_seeds} seeds (its weights [{module.num_seeds}, ...]), was "
+            "called outside per_seed: call it through per_seed, per_seed(actor)(obs), or in a function run through "
+            "per_seed, which gives each seed its own weights and inputs",
+        )
 
 
 class _Networks(nn.Module):
@@ -86,16 +113,40 @@ def num_seeds(fn, args) -> int:
     return next(x for x in tree_flatten(args)[0] if isinstance(x, torch.Tensor)).shape[0]
 
 
+def name_of(fn) -> str:
+    """A per-seed function's name in a message: a function's or method's name, a network's class."""
+    return getattr(fn, "__name__", None) or type(fn).__name__
+
+
 def check_seeds_dimension(fn, args, n: int):
     """Every tensor argument of a per-seed function is one per seed: [n, ...]. A tensor shared by the seeds (an extra
     [batch] tensor, say) would be cut along its first dimension; this stops it with the fix, in one line."""
     for position, arg in enumerate(args, 1):
         for x in tree_flatten(arg)[0] if isinstance(arg, tuple) else [arg]:
             if isinstance(x, torch.Tensor) and (x.dim() == 0 or x.shape[0] != n):
-                raise TypeError(
-                    f"per_seed({getattr(fn, '__name__', fn)}): argument {position} is a tensor of shape {list(x.shape)}, "
-                    f"but every tensor argument is one per seed, [{n}, ...] with {n} seed(s): give it that leading "
-                    "dimension, or pass a tensor the seeds share inside the function (a closure, functools.partial)"
+                raise refusal(
+                    TypeError,
+                    f"per_seed({name_of(fn)}): argument {position} is a tensor of shape {list(x.shape)}, but every "
+                    f"tensor argument is one per seed, [{n}, ...] with {n} seed(s): give it that leading dimension, or "
+                    "pass a tensor the seeds share inside the function (a closure, functools.partial)",
+                )
+
+
+def check_stacked(fn, networks: nn.Module, n: int):
+    """Every parameter and buffer of the networks a per-seed function uses holds the n seeds: a parameter stack_seeds
+    stacked (one a fork adds to a built network, after stacking, is the same tensor for every seed, and vmap would
+    cut it along its first dimension), a buffer [n, ...]."""
+    for kind, tensors in (("parameter", networks.named_parameters()), ("buffer", networks.named_buffers())):
+        for name, x in tensors:
+            stacked = getattr(x, "num_seeds", 1) == n if kind == "parameter" else x.dim() > 0 and x.shape[0] == n
+            if not stacked:
+                _, index, path = name.split(".", 2)  # networks.<k>.<path>
+                owner = type(networks.networks[int(index)]).__name__
+                raise refusal(
+                    RuntimeError,
+                    f"per_seed({name_of(fn)}) with {n} seeds: the {kind} {owner}.{path} {list(x.shape)} is not stacked "
+                    "for the seeds (added to a network after stack_seeds built it?): make it in the network's "
+                    "__init__, so that networks() builds it and stack_seeds gives each seed its own",
                 )
 
 
@@ -130,12 +181,21 @@ def code_of(fn):
 
 def vmap_refusal(fn, n: int, error: RuntimeError) -> RuntimeError:
     """torch.func.vmap's refusal of something a one-seed function did, as one line that says what per_seed needs."""
+    if str(error).startswith("Batching rule not implemented for "):
+        operation = str(error).split()[5].rstrip(".;")
+        return refusal(
+            RuntimeError,
+            f"per_seed({name_of(fn)}) with {n} seeds: PyTorch cannot run {operation} per seed (torch.func.vmap has no "
+            "rule for it), and the function or a layer it calls (spectral_norm's, say) uses it: write that part with "
+            "other operations, or train one seed per process (--num-seeds 1)",
+        )
     what = " ".join(str(error).split(". ")[0].removeprefix("vmap: ").split())
-    return RuntimeError(
-        f"per_seed({getattr(fn, '__name__', fn)}) with {n} seeds: {what}. With several seeds the function runs for all "
+    return refusal(
+        RuntimeError,
+        f"per_seed({name_of(fn)}) with {n} seeds: {what}. With several seeds the function runs for all "
         "of them at once (torch.func.vmap): it cannot read a tensor's value into Python (.item(), float(), an `if` on a "
         "tensor), take a shape from values (a boolean mask), or draw in place into a tensor the seeds share; write it "
-        "with tensor operations (torch.where, a mask multiplied in, clamp) and draw with torch.randn_like(x) and the like"
+        "with tensor operations (torch.where, a mask multiplied in, clamp) and draw with torch.randn_like(x) and the like",
     )
 
 
@@ -154,6 +214,7 @@ def per_seed(fn):
             return tree_map(lambda x: x.unsqueeze(0) if isinstance(x, torch.Tensor) else x, fn(*one_seed))
         modules = [fn, getattr(fn, "__self__", None), *args]  # fn may be a network or its method: per_seed(actor)(obs)
         networks = _Networks(list({id(x): x for x in modules if isinstance(x, nn.Module)}.values()))
+        check_stacked(fn, networks, n)
         state = {**dict(networks.named_parameters()), **dict(networks.named_buffers())}
         in_dims = [0 if isinstance(x, (torch.Tensor, tuple)) else None for x in args]
 
@@ -163,17 +224,22 @@ def per_seed(fn):
         code = code_of(fn)
         watched_calls[code] = calls = watched_calls.get(code, 0) + 1
         before = python_draws() if calls <= WATCHED_CALLS else None
+        inside_per_seed[0] += 1
         try:
             out = vmap(one_seed, in_dims=(0, *in_dims), randomness="different")(state, *args)
         except RuntimeError as error:
-            if str(error).startswith("vmap:") or "doesn't have storage" in str(error):  # .tolist() gives the latter
+            refused = ("vmap:", "Batching rule not implemented for ")
+            if str(error).startswith(refused) or "doesn't have storage" in str(error):  # .tolist() gives the latter
                 raise vmap_refusal(fn, n, error) from error
             raise
+        finally:
+            inside_per_seed[0] -= 1
         if before is not None and not same_state(before, python_draws()):
-            raise RuntimeError(
-                f"per_seed({getattr(fn, '__name__', fn)}) with {n} seeds drew from Python's or NumPy's random generator "
-                "(random, np.random), which a vmap over the seeds runs once, for all of them: one draw the seeds would "
-                "share; draw with torch (torch.randn_like(x), torch.rand(shape), ...), which gives each seed its own"
+            raise refusal(
+                RuntimeError,
+                f"per_seed({name_of(fn)}) with {n} seeds drew from Python's or NumPy's random generator (random, "
+                "np.random), which a vmap over the seeds runs once, for all of them: one draw the seeds would share; draw "
+                "with torch (torch.randn_like(x), torch.rand(shape), ...), which gives each seed its own",
             )
         return out
 
@@ -194,9 +260,10 @@ def stacked_seeds(grads: list) -> int:
     found = {stacked.get(id(g), 0) for g in grads}
     if len(found) > 1:
         counts = ", ".join(f"{n} seeds" if n else "no seeds dimension" for n in sorted(found))
-        raise RuntimeError(
+        raise refusal(
+            RuntimeError,
             f"clip_grad_norm_: gradients of parameters stacked otherwise ({counts}) in one call; one norm over them "
-            "would mix the seeds: clip each process's stacked networks in a call of their own"
+            "would mix the seeds: clip each process's stacked networks in a call of their own",
         )
     return found.pop() if found else 0
 
@@ -211,7 +278,9 @@ def get_total_norm(tensors, norm_type=2.0, error_if_nonfinite=False, foreach=Non
     norms = torch.stack([torch.linalg.vector_norm(t.reshape(n, -1), norm_type, dim=1) for t in tensors])
     total = torch.linalg.vector_norm(norms, norm_type, dim=0)  # [num_seeds]: each seed's norm over its gradients
     if error_if_nonfinite and not torch.isfinite(total).all():
-        raise RuntimeError(f"the total norm of order {norm_type} of a seed's gradients is non-finite: it cannot be clipped")
+        raise refusal(
+            RuntimeError, f"the total norm of order {norm_type} of a seed's gradients is non-finite: it cannot be clipped"
+        )
     return total
 
 
@@ -250,10 +319,11 @@ def seeds_in(tensor: torch.Tensor) -> int:
             if tensor.shape == p.shape and tensor.data_ptr() == p.data_ptr():
                 return p.num_seeds
             if tensor.shape != p.shape[1:]:
-                raise RuntimeError(
+                raise refusal(
+                    RuntimeError,
                     f"nn.init on a part {list(tensor.shape)} of a parameter stacked for {p.num_seeds} seeds "
                     f"{list(p.shape)}: initialise the whole parameter (each seed's slice as one seed's) or a seed's "
-                    "slice, weight[k]"
+                    "slice, weight[k]",
                 )
     return 1
 
@@ -315,6 +385,12 @@ def split_seeds(state: dict, parts: dict, eval_returns: list, run_dirs: list) ->
     moment, replay buffer and tensor part, its env and its evaluations; the flags, the step and the process's
     random generators in all."""
     n = len(run_dirs)
+    # an optimizer's state per parameter: its moments are the parameter's shape, one per seed; its step counter
+    # (0-d) is the seeds'. The keys cut are recorded, as a moment of a 0-d parameter is 0-d in a seed's cut too.
+    cut = {
+        name: {i: [key for key, t in s.items() if isinstance(t, torch.Tensor) and t.dim()] for i, s in sd["state"].items()}
+        for name, sd in state["optimizers"].items()
+    }
     checkpoints = []
     for k in range(n):
         checkpoint = {**state, "run_names": [os.path.basename(run_dir) for run_dir in run_dirs], "seed_index": k}
@@ -327,11 +403,13 @@ def split_seeds(state: dict, parts: dict, eval_returns: list, run_dirs: list) ->
                 name: {
                     **sd,
                     "state": {
-                        i: {key: t[k].clone() if t.dim() else t for key, t in s.items()} for i, s in sd["state"].items()
+                        i: {key: t[k].clone() if key in cut[name][i] else t for key, t in s.items()}
+                        for i, s in sd["state"].items()
                     },
                 }
                 for name, sd in state["optimizers"].items()
             }
+            checkpoint["seed_cut"] = cut
         checkpoints.append(checkpoint)
     return checkpoints
 
@@ -342,6 +420,11 @@ def join_seeds(checkpoints: list, parts: dict) -> dict:
     if len(checkpoints) == 1:
         return first
     state = dict(first)
+    cut = first.get("seed_cut", {})  # which optimizer states split_seeds cut (before it recorded them: the n-d ones)
+
+    def was_cut(name, i, key, t) -> bool:
+        return key in cut[name][i] if name in cut else t.dim() > 0
+
     state["nets"] = {
         name: {key: torch.stack([c["nets"][name][key] for c in checkpoints]) for key in sd}
         for name, sd in first["nets"].items()
@@ -351,7 +434,9 @@ def join_seeds(checkpoints: list, parts: dict) -> dict:
             **sd,
             "state": {
                 i: {
-                    key: torch.stack([c["optimizers"][name]["state"][i][key] for c in checkpoints]) if t.dim() else t
+                    key: torch.stack([c["optimizers"][name]["state"][i][key] for c in checkpoints])
+                    if was_cut(name, i, key, t)
+                    else t
                     for key, t in s.items()
                 }
                 for i, s in sd["state"].items()

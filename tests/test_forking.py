@@ -564,3 +564,173 @@ def test_the_scripts_own_graphed_updates_pass_the_watch(script, fake_cuda, tmp_p
     args = small_args(module, env_id="Pendulum-v1", total_timesteps=600, learning_starts=300, cudagraphs=True, **extra)
     module.main(args)
     assert fake_cuda and sum(graph.replays for graph in fake_cuda) > 2 * CudaGraph.CHECK_EVERY
+
+
+# what the forker's walk of this page met (docs/forking.md, "Caught since"): each a fork's plain-PyTorch change
+SCHEDULER_AT = "    rb = ReplayBuffer("
+STEP_AT = "        run.end_step(global_step)  # training speed, progress bar, checkpoints\n"
+SCHEDULERS = {
+    "LambdaLR": "torch.optim.lr_scheduler.LambdaLR(q_optimizer, lambda i: 1 - i / 1000)",
+    "ReduceLROnPlateau": "torch.optim.lr_scheduler.ReduceLROnPlateau(q_optimizer)",  # wraps no optimizer step
+}
+
+
+def with_scheduler(source, scheduler, given):
+    """TD3 with a learning-rate schedule on its critics, stepped after each update (`given`: in run.start's parts), that
+    exits at step $FORK_STOP_AT as if killed."""
+    step = "q_scheduler.step(0.0)" if "Plateau" in scheduler else "q_scheduler.step()"
+    fork = source.replace(SCHEDULER_AT, f"    q_scheduler = {scheduler}\n" + SCHEDULER_AT, 1)
+    fork = fork.replace(
+        STEP_AT,
+        f"        if global_step >= args.learning_starts:\n            {step}\n"
+        + STEP_AT
+        + "        if global_step == int(os.environ.get('FORK_STOP_AT', -1)):\n            os._exit(9)  # a kill\n",
+    )
+    if given:
+        fork = fork.replace("buffer=rb)", "buffer=rb, q_scheduler=q_scheduler)")
+    assert fork.count("q_scheduler") == (4 if given else 2) and "os._exit" in fork
+    return fork if "\nimport os\n" in fork else fork.replace("import random\n", "import os\nimport random\n")
+
+
+@pytest.mark.parametrize("scheduler", list(SCHEDULERS))
+def test_a_learning_rate_scheduler_the_checkpoints_would_not_hold_is_refused_at_the_start(scheduler, tmp_path):
+    """A scheduler's place in its schedule is state: left out of run.start's parts, --resume would start the schedule
+    again and train on other learning rates than the uninterrupted run, silently. A run that writes checkpoints is
+    refused before its first step."""
+    fork = functools.partial(with_scheduler, scheduler=SCHEDULERS[scheduler], given=False)
+    assert run_fork(tmp_path, fork).returncode == 0  # without checkpoints (the scripts' default) there is no resume
+    result = run_fork(tmp_path, fork, 1, "--checkpoint-frequency", "200")
+    assert result.returncode == 1
+    line = result.stderr.strip().splitlines()[-1]
+    if scheduler == "LambdaLR":  # found by name, as the optimizer's: both say the fix
+        assert line.startswith("error: `q_scheduler`, a learning-rate scheduler, is not in run.start's parts")
+    assert "--resume would start it again" in line and "q_scheduler=q_scheduler" in line
+
+
+@pytest.mark.slow
+def test_a_scheduler_given_to_run_start_resumes_where_its_schedule_was(tmp_path):
+    """Two seeds with a LambdaLR on their critics' optimizer, killed after the checkpoint at step 300 and resumed: the
+    schedule, the learning rate and every weight end as in the uninterrupted process."""
+    fork = functools.partial(with_scheduler, scheduler=SCHEDULERS["LambdaLR"], given=True)
+    flags = ["--checkpoint-frequency", "300"]
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    for folder in (whole, killed):
+        folder.mkdir()
+    assert run_fork(whole, fork, 2, *flags).returncode == 0
+    os.environ["FORK_STOP_AT"] = "350"
+    try:
+        assert run_fork(killed, fork, 2, *flags).returncode == 9
+    finally:
+        del os.environ["FORK_STOP_AT"]
+    assert torch.load(killed / "runs" / "r2" / "checkpoint.pt", weights_only=True)["global_step"] == 300
+    resumed = run_fork(killed, fork, 2, *flags, "--resume", "runs/r1")
+    assert resumed.returncode == 0, resumed.stderr
+    for seed in ("r1", "r2"):
+        a, b = (torch.load(folder / "runs" / seed / "checkpoint.pt", weights_only=True) for folder in (whole, killed))
+        assert a["global_step"] == b["global_step"] == 400
+        assert a["q_scheduler"]["last_epoch"] == b["q_scheduler"]["last_epoch"] == 200  # a step per update
+        assert (
+            a["optimizers"]["q_optimizer"]["param_groups"][0]["lr"] == b["optimizers"]["q_optimizer"]["param_groups"][0]["lr"]
+        )
+        for name, tensor in a["nets"]["qf"].items():
+            assert torch.equal(tensor, b["nets"]["qf"][name]), (seed, name)
+
+
+def test_a_per_seed_value_logged_as_one_tensor_is_refused_with_several_seeds(tmp_path):
+    """A fork that logs the largest Q-value as a 0-d tensor (over every seed's values) would log the same number in
+    every seed's run; with one seed it is that seed's own. Several seeds: refused when it is first logged."""
+    anchor = '            logs = {"losses/qf_values":'
+
+    def edit(source):
+        return source.replace(anchor, '            logs = {"losses/qf_max": qf_a_values.max(), "losses/qf_values":', 1)
+
+    one, two = tmp_path / "one", tmp_path / "two"
+    one.mkdir(), two.mkdir()
+    assert run_fork(one, edit, 1).returncode == 0
+    result = run_fork(two, edit, 2)
+    assert result.returncode == 1
+    assert (
+        result.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            "error: run.log: `losses/qf_max` is a tensor of shape [] for 2 seeds: log one value per seed, a tensor [2]"
+        )
+    )
+
+
+def test_a_refusal_in_a_forks_per_seed_function_is_one_line_on_the_command_line(tmp_path):
+    """`.item()` in TD3's critic loss, two seeds: the run stops with the refusal's one line, no traceback."""
+    anchor = "    qf_a_values = qf(batch.observations, batch.actions)\n"
+    result = run_fork(tmp_path, lambda s: s.replace(anchor, anchor + "    float(qf_a_values.max().item())\n", 1), 2)
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines()[-1].startswith("error: per_seed(critic_loss) with 2 seeds: ")
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("shape", [(3,), (1,), ()])
+def test_a_parameter_added_to_a_built_network_is_refused_with_several_seeds(shape):
+    """A parameter a fork adds to a network after stack_seeds built it is one tensor for every seed: vmap would cut a
+    [num_seeds] one into a part per seed, and stop on another shape with its own error. It runs as written with one
+    seed; with several it is refused in one line that names it."""
+    for seeds in ([4], [4, 5, 6]):
+        net = built(seeds)
+        net.scale = nn.Parameter(torch.ones(shape))
+
+        def scaled(x, net):
+            return (net(x) * net.scale).pow(2).mean()
+
+        x = torch.randn(len(seeds), 8, 3)
+        if len(seeds) == 1:
+            assert torch.equal(per_seed(scaled)(x, net), scaled(x[0], net).unsqueeze(0))
+            continue
+        with pytest.raises(RuntimeError) as refused:
+            per_seed(scaled)(x, net)
+        assert str(refused.value).startswith(
+            f"per_seed(scaled) with 3 seeds: the parameter Projected.scale {list(shape)} is not stacked for the seeds"
+        )
+
+
+def test_a_network_stacked_for_several_seeds_called_outside_per_seed_is_refused():
+    x = torch.randn(3, 8, 3)
+    assert built([4])(x[0]).shape == (8, 1)  # one seed: a plain network
+    net = built([4, 5, 6])
+    assert per_seed(net)(x).shape == (3, 8, 1)
+    with pytest.raises(RuntimeError, match=r"^Projected, stacked for 3 seeds .* was called outside per_seed: call it through"):
+        net(x)
+
+
+class Shared(nn.Module):
+    def __init__(self, encoder, out):
+        super().__init__()
+        self.encoder, self.head = encoder, nn.Linear(4, out)
+
+    def forward(self, x):
+        return self.head(self.encoder(x))
+
+
+def with_a_shared_encoder():
+    """An actor and a critic that share an encoder (a layer with a buffer), as networks() would build them."""
+    encoder = nn.Sequential(nn.Linear(3, 4), nn.LayerNorm(4))
+    encoder.register_buffer("calls", torch.zeros(()))
+    return [Shared(encoder, 2), Shared(encoder, 1)]
+
+
+def test_a_layer_two_networks_share_stays_shared_and_is_each_seeds_own():
+    actor, critic = stack_seeds(with_a_shared_encoder, [4, 5, 6], torch.device("cpu"))
+    assert actor.encoder is critic.encoder and actor.encoder[0].weight.shape == (3, 4, 3)
+    assert actor.encoder.calls.shape == (3,)
+    torch.manual_seed(5)
+    alone_actor, _ = with_a_shared_encoder()
+    assert torch.equal(actor.encoder[0].weight[1], alone_actor.encoder[0].weight)
+    assert torch.equal(actor.head.weight[1], alone_actor.head.weight)
+    x = torch.randn(3, 8, 3)
+    assert per_seed(critic)(x).shape == (3, 8, 1) and per_seed(actor)(x).shape == (3, 8, 2)
+
+
+def test_an_operation_pytorch_cannot_run_per_seed_is_refused_in_one_line():
+    """spectral_norm's power iteration uses an operation vmap has no rule for (torch 2.13: aten::div.out)."""
+    (net,) = stack_seeds(lambda: [nn.utils.parametrizations.spectral_norm(nn.Linear(3, 1))], [4, 5], torch.device("cpu"))
+    with pytest.raises(RuntimeError) as refused:
+        per_seed(net)(torch.randn(2, 8, 3))
+    message = str(refused.value)
+    assert message.startswith("per_seed(ParametrizedLinear) with 2 seeds: PyTorch cannot run aten::") and "\n" not in message

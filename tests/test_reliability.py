@@ -186,8 +186,8 @@ def test_a_checkpoint_restores_the_next_draw_of_every_random_generator(env_id, t
 
 @pytest.mark.parametrize("num_seeds", [1, 2])
 def test_a_checkpoint_restores_every_optimizers_state_as_saved(num_seeds, tmp_path):
-    """Adam's step counts and moments and its hyperparameters, through each seed's checkpoint file and back into fresh
-    optimizers, equal the saved ones, and the next step then moves the weights exactly as the uninterrupted one does
+    """Adam's step counts and moments and its hyperparameters (a 0-d parameter's too), through each seed's checkpoint
+    file and back into fresh optimizers, equal the saved ones, and the next step then moves the weights exactly as the uninterrupted one does
     (with two seeds, each seed's cut of the stacked state goes to its own file and comes back stacked)."""
     from rl_utils import stack_seeds
     from rl_utils.seeds import join_seeds, split_seeds
@@ -197,10 +197,13 @@ def test_a_checkpoint_restores_every_optimizers_state_as_saved(num_seeds, tmp_pa
     seeds = list(range(1, num_seeds + 1))
     args = load("td3").Args(env_id="Pendulum-v1", num_seeds=num_seeds)
 
+    def network():  # with a 0-d parameter, whose moments are 0-d in a seed's cut, as the step count is
+        net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.Tanh(), torch.nn.Linear(4, 1))
+        net.scale = torch.nn.Parameter(torch.tensor(0.5))
+        return [net]
+
     def built():
-        (net,) = stack_seeds(
-            lambda: [torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.Tanh(), torch.nn.Linear(4, 1))], seeds, "cpu"
-        )
+        (net,) = stack_seeds(network, seeds, "cpu")
         return {"net": net}, {"opt": torch.optim.Adam(net.parameters(), lr=1e-2, betas=(0.8, 0.95))}
 
     def step(nets, opts):  # a loss of the parameters alone: it holds for stacked seeds as for one
@@ -222,7 +225,7 @@ def test_a_checkpoint_restores_every_optimizers_state_as_saved(num_seeds, tmp_pa
     checkpoints.restore(join_seeds(loaded, {}), [env], fresh_nets, fresh_opts, {})
     saved, restored = opts["opt"].state_dict(), fresh_opts["opt"].state_dict()
     assert restored["param_groups"] == saved["param_groups"]
-    assert saved["state"].keys() == restored["state"].keys() and len(saved["state"]) == 4
+    assert saved["state"].keys() == restored["state"].keys() and len(saved["state"]) == 5
     for i, param_state in saved["state"].items():
         assert param_state["step"].item() == 3.0
         for key, value in param_state.items():
