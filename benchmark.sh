@@ -25,7 +25,7 @@ Usage: bash benchmark.sh [flags] [-- flags passed to every script]
   --suite dmc|mujoco        the paper's 18 DMC tasks or its 4 MuJoCo tasks (Ant, Hopper, Humanoid, Walker2d -v4)
   --seeds S [S ...]         seeds (default: 1 2 3 4 5 6 7 8 9 10)
   --seeds-per-process N     train up to N consecutive seeds of a task and algorithm in one process, the script's
-                            --num-seeds (oparl td3 sac; default: 1, a process per run)
+                            --num-seeds (oparl td3 sac redq; default: 1, a process per run)
   --total-timesteps N       steps per run (default: each script's default, 1000000)
   --workers N               runs at a time here, one torch thread each (default: number of cores, $(nproc))
   --checkpoint-frequency N  checkpoint every N steps, so an interrupted run resumes (default: 10000)

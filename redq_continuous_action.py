@@ -183,7 +183,8 @@ def td_target(batch: Batch, actor: Actor, qf_target: QEnsemble, alpha: torch.Ten
     with M a random subset of num_min of the num_q target critics, drawn anew for every update."""
     with torch.no_grad():
         next_actions, next_log_pi, _ = actor.get_action(batch.next_observations)
-        subset = torch.randperm(args.num_q, device=next_actions.device)[: args.num_min]  # a tensor: --cudagraphs draws anew
+        # a tensor (--cudagraphs draws anew at each replay), and under per_seed each seed's own
+        subset = torch.randperm(args.num_q, device=next_actions.device)[: args.num_min]
         q_next = qf_target(batch.next_observations, next_actions)[subset]  # every critic's, the subset's kept
         min_qf_next_target = q_next.min(0).values - alpha * next_log_pi
         return batch.rewards + (1 - batch.terminations) * args.gamma * min_qf_next_target
@@ -240,7 +241,6 @@ def check_args(args: Args) -> list:
         ),
         *at_least(args, 1, "num_q", "utd_ratio"),
         (1 <= args.num_min <= args.num_q, f"--num-min must be in [1, --num-q ({args.num_q})], got {args.num_min}"),
-        (args.num_seeds == 1, "--num-seeds: REDQ trains one seed per process (its random target subsets are not per seed)"),
     ]
 
 

@@ -456,14 +456,17 @@ def fake_name(seed):
 
 @pytest.fixture
 def fake(tmp_path):
-    """A copy of benchmark.sh beside stand-in scripts, `fake` (it has --num-seeds) and `oneseed` (it has not), and an
-    empty folder to sweep in: sweeps of a few milliseconds a run."""
+    """A copy of benchmark.sh beside stand-in scripts, `fake` (it has --num-seeds), `oneseed` (it has not) and
+    `checked` (its check_args refuses more than one seed), and an empty folder to sweep in: sweeps of a few
+    milliseconds a run."""
     repo, work = tmp_path / "repo", tmp_path / "work"
     repo.mkdir()
     work.mkdir()
     shutil.copy(BENCHMARK, repo / "benchmark.sh")
     (repo / "fake_continuous_action.py").write_text(FAKE_SCRIPT)
     (repo / "oneseed_continuous_action.py").write_text(FAKE_SCRIPT.replace("num_seeds: int = 1", "seed: int = 1"))
+    refusing = '\n\ndef check_args(args):\n    return [(args.num_seeds == 1, "--num-seeds: one seed per process")]\n'
+    (repo / "checked_continuous_action.py").write_text(FAKE_SCRIPT + refusing)  # has --num-seeds, refuses 2
 
     def run(*flags, env=None):
         return bench(*flags, cwd=work, benchmark=str(repo / "benchmark.sh"), env=env, timeout=120)
@@ -609,8 +612,10 @@ def test_seeds_per_process_needs_a_script_with_num_seeds(fake):
     ]
     assert os.listdir(fake.work) == []  # refused before anything ran
     assert fake("--algos", "oneseed", *FAKE[2:], "--seeds", "1", "2", "--seeds-per-process", "1", "--dry-run").returncode == 0
-    redq = bench("--algos", "redq", "--seeds", "1", "2", "--seeds-per-process", "2", "--dry-run", cwd=fake.work)
-    assert redq.returncode == 2 and "redq_continuous_action.py trains one seed per process" in redq.stderr
+    checked = fake("--algos", "checked", *FAKE[2:], "--seeds", "1", "2", "--seeds-per-process", "2", "--dry-run")
+    assert checked.returncode == 2 and checked.stderr.strip().splitlines() == [
+        "error: --seeds-per-process 2: checked_continuous_action.py trains one seed per process (its --num-seeds check)"
+    ]
 
 
 @pytest.mark.slow
@@ -656,7 +661,7 @@ def test_gpu_sweep_groups_the_seeds_records_its_updates_and_keeps_the_run_names(
     assert result.stderr.startswith("gpu_fit: 2 process(es) at once need about ")
     assert "the GPU has 79.1 GiB free" in result.stderr
     mixed = bench(*GPU_SWEEP[:3], "redq", *GPU_SWEEP[4:], "--dry-run", cwd=tmp_path, env=fake_gpu(tmp_path, 81000))
-    assert [p[:3] for p in planned(mixed.stdout)][:2] == [("td3", 1, 1), ("redq", 1, 1)]  # REDQ trains one seed a process
+    assert [p[:3] for p in planned(mixed.stdout)][:2] == [("td3", 1, 3), ("redq", 1, 3)]
 
 
 def test_gpu_sweep_that_would_not_fit_is_refused_in_one_line_before_it_starts(tmp_path):

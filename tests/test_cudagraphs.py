@@ -14,8 +14,8 @@ import torch
 from conftest import OFF_POLICY, REPO, cli_flags, critic_lr_flag, load, needs_cuda, parse, scalars, script_command, small_args
 
 LOSSES = ["losses/qf_loss", "losses/qf_values"]
-# (script, seeds in the process): REDQ trains one seed per process (its command line refuses more)
-SEED_CASES = [(s, n) for s in OFF_POLICY for n in (1, 3) if n == 1 or s != "redq"]
+# (script, seeds in the process)
+SEED_CASES = [(s, n) for s in OFF_POLICY for n in (1, 3)]
 
 
 @needs_cuda

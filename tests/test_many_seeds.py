@@ -19,7 +19,7 @@ import pytest
 import torch
 import torch.nn as nn
 
-from conftest import OFF_POLICY, REPO, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
+from conftest import OFF_POLICY, QUICK, REPO, declared, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
 from rl_utils import SeedEnvs, evaluate, per_seed, stack_seeds
 from rl_utils.seeds import join_seeds, split_seeds
 from rl_utils import checkpoints as ckpt
@@ -46,7 +46,7 @@ ENV = "dm_control/cartpole-swingup-v0"
 
 
 def test_the_paper_algorithms_train_many_seeds():
-    assert {"td3", "oparl", "sac"} <= set(MANY_SEEDS)
+    assert {"td3", "oparl", "sac", "redq"} <= set(MANY_SEEDS)
 
 
 # per_seed itself, on a toy network
@@ -167,6 +167,13 @@ def one_update(result, batch):
     return result["update"](batch, *[True] * flags)
 
 
+def step_batches(script, rb, size=64):
+    """What a training step's update takes: a batch per seed [num_seeds, size, ...], or REDQ's --utd-ratio of them
+    ([num_seeds, G, size, ...]), as short_run's settings give it."""
+    utd_ratio = (declared(QUICK, script) or {}).get("utd_ratio")
+    return rb.sample(*([utd_ratio] if utd_ratio else []), size)
+
+
 def params(result) -> dict:
     """Every network's parameters in main's result, by network and parameter name."""
     return {f"{name}.{p}": t for name, net in modules(result).items() for p, t in net.named_parameters()}
@@ -180,7 +187,7 @@ def seed_params(result, k) -> dict:
 @pytest.mark.parametrize("script", [pytest.param(s, marks=pytest.mark.xdist_group(f"many-{s}")) for s in MANY_SEEDS])
 def test_changing_one_seeds_data_and_weights_leaves_the_others_bit_identical(script, short_run):
     result = short_run(script, 3)
-    batch = result["rb"].sample(64)
+    batch = step_batches(script, result["rb"])
     before = stacked_state(result)
     one_update(result, batch)
     reference = {k: [t.clone() for t in seed_params(result, k).values()] for k in range(3)}
@@ -218,7 +225,8 @@ def test_a_seeds_update_is_the_one_seed_update_on_the_same_batch(script, short_r
             one["alpha"].copy_(many["alpha"][2:3])
 
     monkeypatch.setattr(torch, "randn_like", torch.zeros_like)
-    batch = many["rb"].sample(64)
+    monkeypatch.setattr(torch, "randperm", lambda n, **kw: torch.arange(n, **kw))  # REDQ's target subsets: the same
+    batch = step_batches(script, many["rb"])
     one_update(many, batch)
     one_update(one, type(batch)(*(field[2:3] for field in batch)))
     # to a third of an Adam step (lr 3e-4): where a gradient is near zero, rounding can flip the sign of a step
@@ -226,12 +234,14 @@ def test_a_seeds_update_is_the_one_seed_update_on_the_same_batch(script, short_r
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-4, msg=f"{name}: seed 3 of 3 against the same seed alone")
     # The gradients too: a mean over seeds instead of the sum would make them a third (a difference the weights hide,
     # as Adam divides by the gradients' scale). The critics' agree to rounding; the actors' are taken through critics
-    # already updated, whose last bits differ between the kernels, so they agree to less (a few percent).
+    # already updated, whose last bits differ between the kernels, so they agree to less (a few percent), as do REDQ's
+    # critics' (its last of several critic updates a step: 9e-4 with 2).
+    critic_tolerance = 1e-2 if script == "redq" else 1e-4
     checked = 0
     for (name, p_many), p_one in zip(params(many).items(), params(one).values()):
         if p_one.grad is not None:
             error = (p_many.grad[2] - p_one.grad).abs().max() / p_one.grad.abs().max()
-            assert error < (1e-4 if name.startswith("qf.") else 5e-2), f"{name}'s gradient differs by {error:.1e}"
+            assert error < (critic_tolerance if name.startswith("qf.") else 5e-2), f"{name}'s gradient differs by {error:.1e}"
             checked += name.startswith("qf.")
     assert checked
     load_state(many, before_many)

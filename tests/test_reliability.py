@@ -444,7 +444,6 @@ EXTRA_BAD_INPUTS = {
         (["--num-min", "11"], "--num-min must be in [1, --num-q (10)]"),
         (["--utd-ratio", "0"], "--utd-ratio must be >= 1"),
         (["--policy-lr", "-1"], "--policy-lr must be > 0"),
-        (["--num-seeds", "2"], "--num-seeds: REDQ trains one seed per process"),
     ],
     "ppo": PPO_BAD_INPUTS,
     "rnd": PPO_BAD_INPUTS
