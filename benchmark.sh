@@ -241,7 +241,7 @@ if ((seeds_per_process > 1)); then
   for algo in "${algos[@]}"; do
     grep -q '^ *num_seeds: int' "$REPO/${algo}_continuous_action.py" ||
       die "--seeds-per-process $seeds_per_process: ${algo}_continuous_action.py has no --num-seeds (one seed per process)"
-    # a script that has the flag but refuses more than one seed (REDQ) says so in check_args
+    # a script that has the flag but refuses more than one seed says so in check_args
     ! grep -q '(args.num_seeds == 1, "' "$REPO/${algo}_continuous_action.py" ||
       die "--seeds-per-process $seeds_per_process: ${algo}_continuous_action.py trains one seed per process (its --num-seeds check)"
   done

@@ -102,8 +102,10 @@ class Run:
         optimizer's step, which a scheduler wraps, or (ReduceLROnPlateau, which does not) among main's names."""
         if not self.args.checkpoint_frequency:
             return
-        held = {id(part) for part in self.parts.values()}
-        held_optimizers = {id(getattr(part, "optimizer", None)) for part in self.parts.values()}
+        # a scheduler made of others (SequentialLR, ChainedScheduler) holds theirs in its state_dict
+        parts = [*self.parts.values(), *(s for part in self.parts.values() for s in getattr(part, "_schedulers", []))]
+        held = {id(part) for part in parts}
+        held_optimizers = {id(getattr(part, "optimizer", None)) for part in parts}
         for name, x in self.caller.f_locals.items():
             if isinstance(x, (lr_scheduler.LRScheduler, lr_scheduler.ReduceLROnPlateau)) and id(x) not in held:
                 fail(

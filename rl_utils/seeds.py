@@ -40,8 +40,8 @@ STACKED = weakref.WeakValueDictionary()
 def stack_seeds(networks, seeds: list, device: torch.device) -> list:
     """The networks `networks()` returns, built once per seed, each parameter and buffer stacked along a new leading
     dimension, on the device. Seed k's initial weights (and buffers, a random projection's say) are those of a
-    single-seed run of seed k; a parameter keeps its requires_grad; a layer two networks share (an encoder) stays
-    shared, stacked once. With several seeds, calling a network outside per_seed stops in one line. One seed's
+    single-seed run of seed k; a parameter keeps its requires_grad; a layer two networks share (an encoder), and a
+    parameter tied under two names, stay shared, stacked once. With several seeds, calling a network outside per_seed stops in one line. One seed's
     networks are the ones built."""
     if len(seeds) == 1:
         built = [net.to(device) for net in networks()]
@@ -52,15 +52,20 @@ def stack_seeds(networks, seeds: list, device: torch.device) -> list:
                 torch.manual_seed(seed)
                 per_seed_nets.append(networks())
         stacked_buffers = set()  # by id: a buffer of a layer two networks share is stacked once
+        replaced = {}  # a parameter stacked, by the id of seed 0's: a parameter tied to it (two names) gets the same
         for nets in zip(*per_seed_nets):
-            for name, param in list(nets[0].named_parameters()):
+            for name, param in list(nets[0].named_parameters(remove_duplicate=False)):
+                owner, _, attr = name.rpartition(".")
                 if id(param) in STACKED:  # a layer this network shares with one stacked before
                     continue
+                if id(param) in replaced:  # tied to a parameter stacked before
+                    setattr(nets[0].get_submodule(owner), attr, replaced[id(param)])
+                    continue
                 stacked = torch.stack([net.get_parameter(name).detach() for net in nets])
-                owner, _, attr = name.rpartition(".")
                 stacked = nn.Parameter(stacked, requires_grad=param.requires_grad)
                 stacked.num_seeds = len(seeds)
                 STACKED[id(stacked)] = stacked
+                replaced[id(param)] = stacked
                 setattr(nets[0].get_submodule(owner), attr, stacked)
             for name, buffer in list(nets[0].named_buffers()):
                 if id(buffer) in stacked_buffers:
@@ -84,12 +89,17 @@ inside_per_seed = [0]
 
 
 def called_through_per_seed(module, inputs):
-    if not inside_per_seed[0]:
+    """A stacked network runs on one seed's weights, which per_seed swaps in (batched tensors of the vmap); called
+    outside per_seed, or inside it without being one of its arguments (a network a per-seed function closes over), it
+    would run on the stacked [num_seeds, ...] weights."""
+    weight = next(module.parameters(), None)
+    if weight is not None and not torch._C._functorch.is_batchedtensor(weight):
+        where = "inside per_seed without being its argument" if inside_per_seed[0] else "outside per_seed"
         raise refusal(
             RuntimeError,
             f"{type(module).__name__}, stacked for {module.num_seeds} seeds (its weights [{module.num_seeds}, ...]), was "
-            "called outside per_seed: call it through per_seed, per_seed(actor)(obs), or in a function run through "
-            "per_seed, which gives each seed its own weights and inputs",
+            f"called {where}: call it through per_seed, per_seed(actor)(obs), or pass it to the function run through "
+            "per_seed as an argument, which gives each seed its own weights and inputs",
         )
 
 
@@ -114,7 +124,9 @@ def num_seeds(fn, args) -> int:
 
 
 def name_of(fn) -> str:
-    """A per-seed function's name in a message: a function's or method's name, a network's class."""
+    """A per-seed function's name in a message: a function's or method's name (a partial's function's), a network's
+    class."""
+    fn = unwrapped(fn)
     return getattr(fn, "__name__", None) or type(fn).__name__
 
 
@@ -132,22 +144,28 @@ def check_seeds_dimension(fn, args, n: int):
                 )
 
 
-def check_stacked(fn, networks: nn.Module, n: int):
-    """Every parameter and buffer of the networks a per-seed function uses holds the n seeds: a parameter stack_seeds
-    stacked (one a fork adds to a built network, after stacking, is the same tensor for every seed, and vmap would
-    cut it along its first dimension), a buffer [n, ...]."""
-    for kind, tensors in (("parameter", networks.named_parameters()), ("buffer", networks.named_buffers())):
-        for name, x in tensors:
-            stacked = getattr(x, "num_seeds", 1) == n if kind == "parameter" else x.dim() > 0 and x.shape[0] == n
-            if not stacked:
-                _, index, path = name.split(".", 2)  # networks.<k>.<path>
-                owner = type(networks.networks[int(index)]).__name__
-                raise refusal(
-                    RuntimeError,
-                    f"per_seed({name_of(fn)}) with {n} seeds: the {kind} {owner}.{path} {list(x.shape)} is not stacked "
-                    "for the seeds (added to a network after stack_seeds built it?): make it in the network's "
-                    "__init__, so that networks() builds it and stack_seeds gives each seed its own",
-                )
+def check_stacked(fn, networks: nn.Module, state: dict, n: int):
+    """Every parameter and buffer (`state`) of the networks a per-seed function uses holds the n seeds: a parameter
+    stack_seeds stacked (one a fork adds to a built network, after stacking, is the same tensor for every seed, and
+    vmap would cut it along its first dimension), a buffer [n, ...]."""
+    for name, x in state.items():
+        parameter = isinstance(x, nn.Parameter)
+        if getattr(x, "num_seeds", 1) == n if parameter else x.dim() > 0 and x.shape[0] == n:
+            continue
+        _, index, path = name.split(".", 2)  # networks.<k>.<path>
+        what = (
+            f"{'parameter' if parameter else 'buffer'} {type(networks.networks[int(index)]).__name__}.{path} {list(x.shape)}"
+        )
+        if x.dim() > 0 and x.shape[0] == n:  # the seeds' shape, but not stack_seeds' parameter
+            cause = "replaced after stack_seeds built it (load_state_dict(..., assign=True)?): load in place instead"
+        else:
+            cause = (
+                "added to a network after stack_seeds built it?: make it in the network's __init__, so that networks() "
+                "builds it and stack_seeds gives each seed its own"
+            )
+        raise refusal(
+            RuntimeError, f"per_seed({name_of(fn)}) with {n} seeds: the {what} is not stacked for the seeds ({cause})"
+        )
 
 
 def python_draws() -> tuple:
@@ -173,10 +191,17 @@ WATCHED_CALLS = 10
 watched_calls = {}
 
 
+def unwrapped(fn):
+    """The function a partial (functools.partial(loss, shared)) or a bound method calls."""
+    while isinstance(fn, functools.partial):
+        fn = fn.func
+    return getattr(fn, "__func__", fn)
+
+
 def code_of(fn):
     """What identifies a per-seed function across its wrappings: its code (a network: its forward's)."""
-    fn = getattr(fn, "__func__", fn)  # a bound method
-    return getattr(fn, "__code__", None) or getattr(type(fn).forward, "__code__", type(fn))
+    fn = unwrapped(fn)
+    return getattr(fn, "__code__", None) or getattr(getattr(type(fn), "forward", None), "__code__", type(fn))
 
 
 def vmap_refusal(fn, n: int, error: RuntimeError) -> RuntimeError:
@@ -214,8 +239,8 @@ def per_seed(fn):
             return tree_map(lambda x: x.unsqueeze(0) if isinstance(x, torch.Tensor) else x, fn(*one_seed))
         modules = [fn, getattr(fn, "__self__", None), *args]  # fn may be a network or its method: per_seed(actor)(obs)
         networks = _Networks(list({id(x): x for x in modules if isinstance(x, nn.Module)}.values()))
-        check_stacked(fn, networks, n)
         state = {**dict(networks.named_parameters()), **dict(networks.named_buffers())}
+        check_stacked(fn, networks, state, n)
         in_dims = [0 if isinstance(x, (torch.Tensor, tuple)) else None for x in args]
 
         def one_seed(state, *args):

@@ -8,6 +8,7 @@ import os
 import random
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -607,6 +608,29 @@ def test_a_learning_rate_scheduler_the_checkpoints_would_not_hold_is_refused_at_
     assert "--resume would start it again" in line and "q_scheduler=q_scheduler" in line
 
 
+def test_a_scheduler_found_by_the_optimizer_step_it_wraps_and_one_made_of_others():
+    """A scheduler main does not hold by name (made in a helper) is found by the optimizer step it wraps; one made
+    of others (SequentialLR) holds theirs, which are not refused beside it."""
+    from rl_utils.run import Run
+
+    def checked(parts, **names):
+        run = Run.__new__(Run)
+        run.args, run.parts = dataclasses.replace(td3.Args(), checkpoint_frequency=100), parts
+        run.optimizers, run.caller = {"q_optimizer": optimizer}, types.SimpleNamespace(f_locals=names)
+        run.check_schedulers()
+
+    optimizer = torch.optim.Adam([nn.Parameter(torch.zeros(2))], lr=1e-3)
+    checked({})  # no scheduler
+    warmup = torch.optim.lr_scheduler.LinearLR(optimizer, 0.1, total_iters=10)
+    cosine = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, 100)
+    with pytest.raises(SystemExit, match=r"`q_optimizer` has a learning-rate scheduler that run.start's parts do not"):
+        checked({})
+    schedule = torch.optim.lr_scheduler.SequentialLR(optimizer, [warmup, cosine], milestones=[10])
+    checked({"q_scheduler": schedule}, warmup=warmup, cosine=cosine, q_scheduler=schedule)
+    with pytest.raises(SystemExit, match=r"`cosine`, a learning-rate scheduler, is not in run.start's parts"):
+        checked({"warmup": warmup}, warmup=warmup, cosine=cosine)
+
+
 @pytest.mark.slow
 def test_a_scheduler_given_to_run_start_resumes_where_its_schedule_was(tmp_path):
     """Two seeds with a LambdaLR on their critics' optimizer, killed after the checkpoint at step 300 and resumed: the
@@ -658,13 +682,26 @@ def test_a_per_seed_value_logged_as_one_tensor_is_refused_with_several_seeds(tmp
     )
 
 
-def test_a_refusal_in_a_forks_per_seed_function_is_one_line_on_the_command_line(tmp_path):
-    """`.item()` in TD3's critic loss, two seeds: the run stops with the refusal's one line, no traceback."""
+def test_a_refusal_in_a_forks_per_seed_function_is_one_line_on_the_command_line(tmp_path, monkeypatch):
+    """`.item()` in TD3's critic loss, two seeds: the run stops with the refusal's one line, which names the fork's
+    line in place of the traceback; RL_UTILS_TRACEBACK=1 gives the traceback."""
     anchor = "    qf_a_values = qf(batch.observations, batch.actions)\n"
-    result = run_fork(tmp_path, lambda s: s.replace(anchor, anchor + "    float(qf_a_values.max().item())\n", 1), 2)
-    assert result.returncode == 1
-    assert result.stderr.strip().splitlines()[-1].startswith("error: per_seed(critic_loss) with 2 seeds: ")
-    assert "Traceback" not in result.stderr
+
+    def edit(source):
+        return source.replace(anchor, anchor + "    float(qf_a_values.max().item())\n", 1)
+
+    line = (
+        edit(open(os.path.join(REPO, "td3_continuous_action.py")).read())
+        .splitlines()
+        .index("    float(qf_a_values.max().item())")
+    )
+    result = run_fork(tmp_path, edit, 2)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: per_seed(critic_loss) with 2 seeds: ")
+    assert last.endswith(f" (at fork_continuous_action.py:{line + 1})")
+    monkeypatch.setenv("RL_UTILS_TRACEBACK", "1")
+    assert "Traceback" in run_fork(tmp_path, edit, 2).stderr
 
 
 @pytest.mark.parametrize("shape", [(3,), (1,), ()])
@@ -734,3 +771,51 @@ def test_an_operation_pytorch_cannot_run_per_seed_is_refused_in_one_line():
         per_seed(net)(torch.randn(2, 8, 3))
     message = str(refused.value)
     assert message.startswith("per_seed(ParametrizedLinear) with 2 seeds: PyTorch cannot run aten::") and "\n" not in message
+
+
+def test_a_partial_runs_per_seed_with_the_tensor_it_closes_over_shared():
+    """functools.partial is how a tensor the seeds share enters a per-seed function (a weight per batch element)."""
+    weights = torch.rand(8, 1)
+
+    def weighted(weights, x, net):
+        return (net(x) * weights).pow(2).mean()
+
+    x = torch.randn(3, 8, 3)
+    net = built([4, 5, 6])
+    losses = per_seed(functools.partial(weighted, weights))(x, net)
+    for k, seed in enumerate([4, 5, 6]):
+        torch.testing.assert_close(losses[k], weighted(weights, x[k], built([seed])))
+
+
+def test_a_stacked_network_a_per_seed_function_closes_over_is_refused():
+    """A network reached inside a per-seed function without being its argument would run on the stacked weights."""
+    net, x = built([4, 5, 6]), torch.randn(3, 8, 3)
+    with pytest.raises(RuntimeError, match=r"^Projected, stacked for 3 seeds .* was called inside per_seed without being"):
+        per_seed(lambda x: net(x).mean())(x)
+
+
+class Tied(nn.Module):
+    """An input and an output layer that share one weight under two names (weight tying)."""
+
+    def __init__(self):
+        super().__init__()
+        self.encode, self.decode = nn.Linear(3, 3, bias=False), nn.Linear(3, 3, bias=False)
+        self.decode.weight = self.encode.weight
+
+    def forward(self, x):
+        return self.decode(torch.tanh(self.encode(x)))
+
+
+def test_a_tied_parameter_stays_tied_per_seed():
+    (net,) = stack_seeds(lambda: [Tied()], [4, 5], torch.device("cpu"))
+    assert net.decode.weight is net.encode.weight and net.encode.weight.shape == (2, 3, 3)
+    assert len(list(net.parameters())) == 1
+    torch.manual_seed(5)
+    torch.testing.assert_close(per_seed(net)(torch.ones(2, 1, 3))[1], Tied()(torch.ones(1, 3)))
+
+
+def test_a_stacked_parameter_replaced_by_load_state_dict_assign_is_refused_naming_assign():
+    net = built([4, 5, 6])
+    net.load_state_dict({k: v.clone() for k, v in net.state_dict().items()}, assign=True)
+    with pytest.raises(RuntimeError, match=r"is not stacked for the seeds \(replaced after stack_seeds built it \("):
+        per_seed(loss_fn)(torch.randn(3, 8, 3), net)

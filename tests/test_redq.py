@@ -46,6 +46,34 @@ def test_target_takes_the_min_over_a_fresh_random_subset_of_members():
     assert len(subsets) > 25  # many of the 45 pairs appear: the subset is drawn anew each time
 
 
+def test_each_seed_draws_its_own_subsets_with_several_seeds():
+    """Three seeds side by side (--num-seeds 3): critic i of each target ensemble answers i, so a target is the
+    smallest index in that update's subset. Each seed's subsets are drawn anew at every update and are its own."""
+    from rl_utils import per_seed, stack_seeds
+
+    def networks():
+        qf_target = redq.QEnsemble(OBS_DIM, ACTION_DIM, num_q=10)
+        with torch.no_grad():
+            for i, critic in enumerate(qf_target):
+                critic.fc3.weight.zero_(), critic.fc3.bias.fill_(i)
+        return redq.Actor(OBS_DIM, SPACE), qf_target
+
+    actor, qf_target = stack_seeds(networks, [1, 2, 3], torch.device("cpu"))
+    one = batch_of(64)
+    batch = Batch(
+        *(
+            field.expand(3, *field.shape).clone()
+            for field in one._replace(rewards=0 * one.rewards, terminations=0 * one.terminations)
+        )
+    )
+    args, alpha = redq.Args(gamma=1.0), torch.zeros(3)
+    smallest = torch.stack([per_seed(redq.td_target)(batch, actor, qf_target, alpha, args) for _ in range(30)])
+    assert smallest.shape == (30, 3, 64) and torch.equal(smallest, smallest[..., :1].expand_as(smallest))
+    per_seed_draws = smallest[..., 0].T  # [seed, update]
+    assert all(len(set(draws.tolist())) > 3 for draws in per_seed_draws)  # anew at every update
+    assert not torch.equal(per_seed_draws[0], per_seed_draws[1]) and not torch.equal(per_seed_draws[1], per_seed_draws[2])
+
+
 def test_actor_ascends_the_mean_of_all_critics():
     torch.manual_seed(0)
     actor, qf = redq.Actor(OBS_DIM, SPACE), redq.QEnsemble(OBS_DIM, ACTION_DIM, num_q=10)
