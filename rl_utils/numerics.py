@@ -1,10 +1,12 @@
 """What a training step computes in: the NaN guard (`check_finite`, which raises `NonFiniteError` before an optimizer
-step a non-finite loss would poison), --bf16's matmuls (`bf16_autocast`), and networks that take no gradient for a
+step a non-finite loss would poison, and with several seeds stops a loss that mixes them on its first steps), --bf16's matmuls (`bf16_autocast`), and networks that take no gradient for a
 while (`frozen`)."""
 
 import contextlib
 
 import torch
+
+from rl_utils.seeds import check_apart
 
 
 class NonFiniteError(Exception):
@@ -12,12 +14,14 @@ class NonFiniteError(Exception):
 
 
 def check_finite(value: torch.Tensor, name: str):
-    """Raises NonFiniteError if any of `value` (a loss, one per seed) is not finite."""
+    """Raises NonFiniteError if any of `value` (a loss, one per seed) is not finite. With several seeds, on a loss's
+    first steps, also stops a loss whose seeds are not apart (rl_utils.seeds.check_apart)."""
     # a graph cannot stop on a value: under --cudagraphs the loop checks what it logs
     if value.is_cuda and torch.cuda.is_current_stream_capturing():
         return
     if not torch.isfinite(value).all():
         raise NonFiniteError(name)
+    check_apart(value, name)
 
 
 def bf16_autocast(device: torch.device, enabled: bool):

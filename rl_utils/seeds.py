@@ -224,6 +224,37 @@ def vmap_refusal(fn, n: int, error: RuntimeError) -> RuntimeError:
     )
 
 
+# how many times each loss (by its name in optimize) was checked for a gradient that crosses the seeds
+apart_calls = {}
+
+
+def check_apart(loss: torch.Tensor, name: str):
+    """With several seeds, on a loss's first WATCHED_CALLS steps: the first and the last seed's losses have no gradient
+    in another seed's weights. A term a fork computes outside per_seed over the stacked parameters (an L2 penalty over
+    qf.parameters(), one norm over them all) is one number in every seed's loss: it mixes the seeds, and optimize's sum
+    gives each seed num_seeds times its gradient. The seeds' slices of a gradient are exactly zero when they are apart."""
+    if loss.dim() != 1 or loss.shape[0] < 2 or not loss.requires_grad:
+        return
+    n = loss.shape[0]
+    apart_calls[name] = calls = apart_calls.get(name, 0) + 1
+    params = [p for p in list(STACKED.values()) if p.num_seeds == n and p.requires_grad]
+    if calls > WATCHED_CALLS or not params:
+        return
+    for k in (0, n - 1):
+        grads = torch.autograd.grad(loss[k], params, retain_graph=True, allow_unused=True)
+        for p, grad in zip(params, grads):
+            others = torch.cat([grad[:k], grad[k + 1 :]]) if grad is not None else None
+            if others is not None and others.count_nonzero().item():
+                raise refusal(
+                    RuntimeError,
+                    f"{name}: seed index {k}'s loss has a gradient in other seeds' weights (a parameter {list(p.shape)}): a "
+                    "term computed outside per_seed over the stacked parameters (an L2 penalty over qf.parameters(), a "
+                    "norm over them all, a mean over the seeds) is one number in every seed's loss, which mixes the seeds "
+                    "and gives each seed num_seeds times its gradient; compute it inside the function run through "
+                    "per_seed, on one seed's weights",
+                )
+
+
 def per_seed(fn):
     """fn (a function or a network), written for one seed, run for every seed: its tensor arguments (and NamedTuples
     of them) carry a leading seeds dimension, its networks come from stack_seeds, what it returns gains that dimension.

@@ -819,3 +819,33 @@ def test_a_stacked_parameter_replaced_by_load_state_dict_assign_is_refused_namin
     net.load_state_dict({k: v.clone() for k, v in net.state_dict().items()}, assign=True)
     with pytest.raises(RuntimeError, match=r"is not stacked for the seeds \(replaced after stack_seeds built it \("):
         per_seed(loss_fn)(torch.randn(3, 8, 3), net)
+
+
+def test_a_penalty_over_all_the_stacked_weights_added_outside_per_seed_is_refused_with_several_seeds(tmp_path):
+    """An L2 penalty on the critics added to the loss in update, outside per_seed: with one seed it is that seed's;
+    with two it is one number over both seeds' weights in each seed's loss (each seed's gradient of it doubled, the
+    seeds mixed). Stopped at the first step, naming the loss."""
+    anchor = '            optimize(qf_loss, "qf_loss", q_optimizer)\n'
+    penalty = "            qf_loss = qf_loss + 1e-3 * sum(p.pow(2).sum() for p in qf.parameters())\n"
+    one, two = tmp_path / "one", tmp_path / "two"
+    one.mkdir(), two.mkdir()
+    assert run_fork(one, lambda s: s.replace(anchor, penalty + anchor, 1), 1).returncode == 0
+    result = run_fork(two, lambda s: s.replace(anchor, penalty + anchor, 1), 2)
+    assert result.returncode == 1
+    assert (
+        result.stderr.strip()
+        .splitlines()[-1]
+        .startswith("error: qf_loss: seed index 0's loss has a gradient in other seeds' weights (a parameter [2, ")
+    )
+
+
+def test_the_seeds_apart_check_passes_apart_seeds_and_looks_at_each_losss_first_steps():
+    net = built([4, 5, 6])
+    x = torch.randn(3, 8, 3)
+    seeds_module.apart_calls.clear()
+    for _ in range(seeds_module.WATCHED_CALLS):
+        seeds_module.check_apart(per_seed(loss_fn)(x, net), "apart")  # nothing crosses the seeds
+    mixed = per_seed(loss_fn)(x, net) + net.head.weight.pow(2).sum()
+    seeds_module.check_apart(mixed, "apart")  # past its first steps: no longer looked at
+    with pytest.raises(RuntimeError, match=r"^mixed: seed index 0's loss has a gradient in other seeds' weights"):
+        seeds_module.check_apart(mixed, "mixed")
