@@ -1,6 +1,6 @@
 """What a training step computes in: the NaN guard (`check_finite`, which raises `NonFiniteError` before an optimizer
-step a non-finite loss would poison, and with several seeds stops a loss that mixes them on its first steps), --bf16's matmuls (`bf16_autocast`), and networks that take no gradient for a
-while (`frozen`)."""
+step a non-finite loss would poison, and with several seeds stops a loss that mixes them on its first steps),
+--bf16's matmuls (`bf16_autocast`), and networks that take no gradient for a while (`frozen`)."""
 
 import contextlib
 

@@ -41,8 +41,8 @@ def stack_seeds(networks, seeds: list, device: torch.device) -> list:
     """The networks `networks()` returns, built once per seed, each parameter and buffer stacked along a new leading
     dimension, on the device. Seed k's initial weights (and buffers, a random projection's say) are those of a
     single-seed run of seed k; a parameter keeps its requires_grad; a layer two networks share (an encoder), and a
-    parameter tied under two names, stay shared, stacked once. With several seeds, calling a network outside per_seed stops in one line. One seed's
-    networks are the ones built."""
+    parameter tied under two names, stay shared, stacked once. With several seeds, calling a network outside per_seed
+    stops in one line. One seed's networks are the ones built."""
     if len(seeds) == 1:
         built = [net.to(device) for net in networks()]
     else:
