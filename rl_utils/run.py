@@ -77,7 +77,7 @@ class Run:
             if isinstance(x, (torch.nn.Module, torch.optim.Optimizer)) and id(x) not in watched:
                 kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
                 fail(f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there")
-        self.check_schedulers()
+        self.check_state_held()
         observations = None
         if self.checkpoints:
             observations = ckpt.restore(join_seeds(self.checkpoints, parts), self.env_list, nets, optimizers, parts)
@@ -96,10 +96,11 @@ class Run:
     def log_episodes(self, infos, step: int):
         self.logs.log_episodes(infos, step)
 
-    def check_schedulers(self):
-        """A learning-rate scheduler (torch.optim.lr_scheduler) of an optimizer that is checkpointed is checkpointed
-        too, among run.start's parts: else a resumed run would start its schedule again, silently. Found by the
-        optimizer's step, which a scheduler wraps, or (ReduceLROnPlateau, which does not) among main's names."""
+    def check_state_held(self):
+        """Every object main holds that has a state (a state_dict() and a load_state_dict(): a learning-rate
+        scheduler, a running normaliser, a GradScaler) is checkpointed, among run.start's parts: else a resumed run would
+        start it from its initial state, silently. Found among main's names, and a learning-rate scheduler also by the
+        optimizer step it wraps (one made in a helper). Looked at where checkpoints are written."""
         if not self.args.checkpoint_frequency:
             return
         # a scheduler made of others (SequentialLR, ChainedScheduler) holds theirs in its state_dict
@@ -107,10 +108,18 @@ class Run:
         held = {id(part) for part in parts}
         held_optimizers = {id(getattr(part, "optimizer", None)) for part in parts}
         for name, x in self.caller.f_locals.items():
-            if isinstance(x, (lr_scheduler.LRScheduler, lr_scheduler.ReduceLROnPlateau)) and id(x) not in held:
+            if id(x) in held or isinstance(x, (torch.nn.Module, torch.optim.Optimizer)):
+                continue
+            if isinstance(x, (lr_scheduler.LRScheduler, lr_scheduler.ReduceLROnPlateau)):
                 fail(
                     f"`{name}`, a learning-rate scheduler, is not in run.start's parts: a checkpoint would not hold where "
                     f"its schedule is, and --resume would start it again; add it there (run.start(..., {name}={name}))"
+                )
+            if callable(getattr(x, "state_dict", None)) and callable(getattr(x, "load_state_dict", None)):
+                fail(
+                    f"`{name}` ({type(x).__name__}) has a state_dict() but is not in run.start's parts: a checkpoint would "
+                    f"not hold it, and --resume would start it from its initial state; add it there "
+                    f"(run.start(..., {name}={name}))"
                 )
         for name, optimizer in self.optimizers.items():
             if hasattr(optimizer.step, "_wrapped_by_lr_sched") and id(optimizer) not in held_optimizers:
@@ -122,7 +131,7 @@ class Run:
 
     def state(self, step: int) -> list:
         """One checkpoint per seed of the process's state at `step`."""
-        self.check_schedulers()
+        self.check_state_held()
         state = ckpt.snapshot(self.script, self.args, self.env_list, step, self.nets, self.optimizers, self.parts)
         return split_seeds(state, self.parts, self.eval_returns, self.run_dirs)
 

@@ -617,7 +617,7 @@ def test_a_scheduler_found_by_the_optimizer_step_it_wraps_and_one_made_of_others
         run = Run.__new__(Run)
         run.args, run.parts = dataclasses.replace(td3.Args(), checkpoint_frequency=100), parts
         run.optimizers, run.caller = {"q_optimizer": optimizer}, types.SimpleNamespace(f_locals=names)
-        run.check_schedulers()
+        run.check_state_held()
 
     optimizer = torch.optim.Adam([nn.Parameter(torch.zeros(2))], lr=1e-3)
     checked({})  # no scheduler
@@ -849,3 +849,37 @@ def test_the_seeds_apart_check_passes_apart_seeds_and_looks_at_each_losss_first_
     seeds_module.check_apart(mixed, "apart")  # past its first steps: no longer looked at
     with pytest.raises(RuntimeError, match=r"^mixed: seed index 0's loss has a gradient in other seeds' weights"):
         seeds_module.check_apart(mixed, "mixed")
+
+
+def test_any_object_with_a_state_main_holds_but_does_not_checkpoint_is_refused_at_the_start(tmp_path):
+    """A fork's running reward scale (an object with a state_dict) left out of run.start's parts would restart from
+    its initial state on --resume: refused before the first step of a run that writes checkpoints."""
+    scale = (
+        "class RewardScale:\n"
+        "    def __init__(self):\n"
+        "        self.count = 0\n\n"
+        "    def state_dict(self):\n"
+        "        return {'count': self.count}\n\n"
+        "    def load_state_dict(self, state):\n"
+        "        self.count = state['count']\n\n\n"
+    )
+
+    def edit(source):
+        fork = source.replace("def main(args: Args):\n", scale + "def main(args: Args):\n", 1)
+        return fork.replace(SCHEDULER_AT, "    reward_scale = RewardScale()\n" + SCHEDULER_AT, 1)
+
+    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "200")
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines()[-1] == (
+        "error: `reward_scale` (RewardScale) has a state_dict() but is not in run.start's parts: a checkpoint would not "
+        "hold it, and --resume would start it from its initial state; add it there (run.start(..., "
+        "reward_scale=reward_scale))"
+    )
+    given = run_fork(
+        tmp_path,
+        lambda s: edit(s).replace("buffer=rb)", "buffer=rb, reward_scale=reward_scale)"),
+        1,
+        "--checkpoint-frequency",
+        "200",
+    )
+    assert given.returncode == 0, given.stderr
