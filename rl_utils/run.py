@@ -108,7 +108,7 @@ class Run:
         held = {id(part) for part in parts}
         held_optimizers = {id(getattr(part, "optimizer", None)) for part in parts}
         for name, x in self.caller.f_locals.items():
-            if id(x) in held or isinstance(x, (torch.nn.Module, torch.optim.Optimizer)):
+            if id(x) in held or isinstance(x, (type, torch.nn.Module, torch.optim.Optimizer)):  # a class: no state
                 continue
             if isinstance(x, (lr_scheduler.LRScheduler, lr_scheduler.ReduceLROnPlateau)):
                 fail(

@@ -237,22 +237,23 @@ def check_apart(loss: torch.Tensor, name: str):
         return
     n = loss.shape[0]
     apart_calls[name] = calls = apart_calls.get(name, 0) + 1
-    params = [p for p in list(STACKED.values()) if p.num_seeds == n and p.requires_grad]
-    if calls > WATCHED_CALLS or not params:
+    if calls > WATCHED_CALLS:
         return
-    for k in (0, n - 1):
+    params = [p for p in list(STACKED.values()) if p.num_seeds == n and p.requires_grad]
+    for k in (0, n - 1) if params else ():
         grads = torch.autograd.grad(loss[k], params, retain_graph=True, allow_unused=True)
-        for p, grad in zip(params, grads):
-            others = torch.cat([grad[:k], grad[k + 1 :]]) if grad is not None else None
-            if others is not None and others.count_nonzero().item():
-                raise refusal(
-                    RuntimeError,
-                    f"{name}: seed index {k}'s loss has a gradient in other seeds' weights (a parameter {list(p.shape)}): a "
-                    "term computed outside per_seed over the stacked parameters (an L2 penalty over qf.parameters(), a "
-                    "norm over them all, a mean over the seeds) is one number in every seed's loss, which mixes the seeds "
-                    "and gives each seed num_seeds times its gradient; compute it inside the function run through "
-                    "per_seed, on one seed's weights",
-                )
+        found = [(p, torch.cat([g[:k], g[k + 1 :]])) for p, g in zip(params, grads) if g is not None]
+        crossing = [(others != 0).any() & others.isfinite().all() for _, others in found]  # non-finite: the NaN guard's
+        if not found or not torch.stack(crossing).any():  # one read of the device
+            continue
+        p = found[int(torch.stack(crossing).int().argmax())][0]
+        raise refusal(
+            RuntimeError,
+            f"{name}: seed index {k}'s loss has a gradient in other seeds' weights (a parameter {list(p.shape)}): a term "
+            "computed outside per_seed over the stacked parameters (an L2 penalty over qf.parameters(), a norm over them "
+            "all, a mean over the seeds) is one number in every seed's loss, which mixes the seeds and gives each seed "
+            "num_seeds times its gradient; compute it inside the function run through per_seed, on one seed's weights",
+        )
 
 
 def per_seed(fn):
@@ -441,6 +442,17 @@ def split_seeds(state: dict, parts: dict, eval_returns: list, run_dirs: list) ->
     moment, replay buffer and tensor part, its env and its evaluations; the flags, the step and the process's
     random generators in all."""
     n = len(run_dirs)
+    for name in parts if n > 1 else ():  # a part's tensors are one per seed: [n, ...] (a ReplayBuffer's rows, log_alpha)
+        value = state[name]
+        tensors = {name: value} if isinstance(value, torch.Tensor) else value if isinstance(value, dict) else {}
+        for key, t in tensors.items():
+            if isinstance(t, torch.Tensor) and (t.dim() == 0 or t.shape[0] != n):
+                raise refusal(
+                    ValueError,
+                    f"run.start's part `{name}`: its state holds `{key}`, a tensor of shape {list(t.shape)}, but with {n} "
+                    f"seeds each tensor of a part is one per seed, [{n}, ...], which a checkpoint cuts into the seeds' "
+                    "shares; give it that leading dimension",
+                )
     # an optimizer's state per parameter: its moments are the parameter's shape, one per seed; its step counter
     # (0-d) is the seeds'. The keys cut are recorded, as a moment of a 0-d parameter is 0-d in a seed's cut too.
     cut = {

@@ -620,7 +620,7 @@ def test_a_scheduler_found_by_the_optimizer_step_it_wraps_and_one_made_of_others
         run.check_state_held()
 
     optimizer = torch.optim.Adam([nn.Parameter(torch.zeros(2))], lr=1e-3)
-    checked({})  # no scheduler
+    checked({}, Critic=nn.Linear, opt_class=torch.optim.Adam)  # no scheduler; classes hold no state
     warmup = torch.optim.lr_scheduler.LinearLR(optimizer, 0.1, total_iters=10)
     cosine = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, 100)
     with pytest.raises(SystemExit, match=r"`q_optimizer` has a learning-rate scheduler that run.start's parts do not"):
@@ -849,6 +849,19 @@ def test_the_seeds_apart_check_passes_apart_seeds_and_looks_at_each_losss_first_
     seeds_module.check_apart(mixed, "apart")  # past its first steps: no longer looked at
     with pytest.raises(RuntimeError, match=r"^mixed: seed index 0's loss has a gradient in other seeds' weights"):
         seeds_module.check_apart(mixed, "mixed")
+    # a non-finite gradient (sqrt at 0) is the NaN guard's matter, not a mixing of the seeds
+    seeds_module.check_apart(per_seed(lambda x, net: (net(x) - net(x).detach()).pow(2).mean().sqrt())(x, net), "sqrt")
+
+
+def test_a_part_whose_state_holds_a_tensor_without_the_seeds_dimension_is_refused_at_the_checkpoint():
+    """A fork's part with a 0-d counter or a shared [obs_dim] mean: a checkpoint cuts each tensor into the seeds'
+    shares along its first dimension, which these do not have."""
+    for tensor in (torch.tensor(0.0), torch.zeros(5)):
+        state = {"envs": [{}, {}], "nets": {}, "optimizers": {}, "scale": {"count": tensor}}
+        with pytest.raises(ValueError, match=r"^run.start's part `scale`: its state holds `count`, a tensor of shape"):
+            split_seeds(state, {"scale": None}, [[], []], ["a", "b"])
+    state["scale"] = {"count": torch.zeros(2, 5)}
+    assert [c["scale"]["count"].shape for c in split_seeds(state, {"scale": None}, [[], []], ["a", "b"])] == [(1, 5)] * 2
 
 
 def test_any_object_with_a_state_main_holds_but_does_not_checkpoint_is_refused_at_the_start(tmp_path):
