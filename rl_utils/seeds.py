@@ -130,12 +130,17 @@ def name_of(fn) -> str:
     return getattr(fn, "__name__", None) or type(fn).__name__
 
 
+def one_per_seed(x: torch.Tensor, n: int) -> bool:
+    """A tensor holds one entry per seed: [n, ...]."""
+    return x.dim() > 0 and x.shape[0] == n
+
+
 def check_seeds_dimension(fn, args, n: int):
     """Every tensor argument of a per-seed function is one per seed: [n, ...]. A tensor shared by the seeds (an extra
     [batch] tensor, say) would be cut along its first dimension; this stops it with the fix, in one line."""
     for position, arg in enumerate(args, 1):
         for x in tree_flatten(arg)[0] if isinstance(arg, tuple) else [arg]:
-            if isinstance(x, torch.Tensor) and (x.dim() == 0 or x.shape[0] != n):
+            if isinstance(x, torch.Tensor) and not one_per_seed(x, n):
                 raise refusal(
                     TypeError,
                     f"per_seed({name_of(fn)}): argument {position} is a tensor of shape {list(x.shape)}, but every "
@@ -144,19 +149,24 @@ def check_seeds_dimension(fn, args, n: int):
                 )
 
 
+# the parameters and buffers (by id) of the per-seed calls check_stacked passed: a training step's calls pass the same
+# tensors each time, and a parameter added or replaced makes another set
+checked_states = set()
+
+
 def check_stacked(fn, networks: nn.Module, state: dict, n: int):
     """Every parameter and buffer (`state`) of the networks a per-seed function uses holds the n seeds: a parameter
     stack_seeds stacked (one a fork adds to a built network, after stacking, is the same tensor for every seed, and
     vmap would cut it along its first dimension), a buffer [n, ...]."""
     for name, x in state.items():
         parameter = isinstance(x, nn.Parameter)
-        if getattr(x, "num_seeds", 1) == n if parameter else x.dim() > 0 and x.shape[0] == n:
+        if getattr(x, "num_seeds", 1) == n if parameter else one_per_seed(x, n):
             continue
         _, index, path = name.split(".", 2)  # networks.<k>.<path>
         what = (
             f"{'parameter' if parameter else 'buffer'} {type(networks.networks[int(index)]).__name__}.{path} {list(x.shape)}"
         )
-        if x.dim() > 0 and x.shape[0] == n:  # the seeds' shape, but not stack_seeds' parameter
+        if one_per_seed(x, n):  # the seeds' shape, but not stack_seeds' parameter
             cause = "replaced after stack_seeds built it (load_state_dict(..., assign=True)?): load in place instead"
         else:
             cause = (
@@ -272,7 +282,12 @@ def per_seed(fn):
         modules = [fn, getattr(fn, "__self__", None), *args]  # fn may be a network or its method: per_seed(actor)(obs)
         networks = _Networks(list({id(x): x for x in modules if isinstance(x, nn.Module)}.values()))
         state = {**dict(networks.named_parameters()), **dict(networks.named_buffers())}
-        check_stacked(fn, networks, state, n)
+        checked = tuple(map(id, state.values()))  # the same tensors as a call checked before: nothing new to look at
+        if checked not in checked_states:
+            check_stacked(fn, networks, state, n)
+            if len(checked_states) >= 64:  # a network that makes new buffers at each call: keep the set small
+                checked_states.clear()
+            checked_states.add(checked)
         in_dims = [0 if isinstance(x, (torch.Tensor, tuple)) else None for x in args]
 
         def one_seed(state, *args):
@@ -446,7 +461,7 @@ def split_seeds(state: dict, parts: dict, eval_returns: list, run_dirs: list) ->
         value = state[name]
         tensors = {name: value} if isinstance(value, torch.Tensor) else value if isinstance(value, dict) else {}
         for key, t in tensors.items():
-            if isinstance(t, torch.Tensor) and (t.dim() == 0 or t.shape[0] != n):
+            if isinstance(t, torch.Tensor) and not one_per_seed(t, n):
                 raise refusal(
                     ValueError,
                     f"run.start's part `{name}`: its state holds `{key}`, a tensor of shape {list(t.shape)}, but with {n} "
@@ -457,7 +472,7 @@ def split_seeds(state: dict, parts: dict, eval_returns: list, run_dirs: list) ->
     # (0-d) is the seeds'. The keys cut are recorded, as a moment of a 0-d parameter is 0-d in a seed's cut too.
     cut = {
         name: {i: [key for key, t in s.items() if isinstance(t, torch.Tensor) and t.dim()] for i, s in sd["state"].items()}
-        for name, sd in state["optimizers"].items()
+        for name, sd in (state["optimizers"].items() if n > 1 else ())
     }
     checkpoints = []
     for k in range(n):
