@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from rl_utils.checkpoints import EpisodeRecord
-from rl_utils.errors import fail
+from rl_utils.errors import fail, refusal
 
 
 def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
@@ -83,6 +83,7 @@ class SeedEnvs:
     def step(self, actions: np.ndarray):
         """Each env steps with its seed's action. Returns next_obs, rewards, terminations, truncations (each
         [num_seeds, ...]) and infos: "real_next_obs", and "episode" (each env's episode statistics, or None)."""
+        check_actions("SeedEnvs.step: actions", actions, len(self.envs), self.action_space)
         next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(self.envs, actions)))
         real_next_obs = np.stack(next_obs)
         next_obs = [
@@ -98,6 +99,18 @@ class SeedEnvs:
             env.close()
 
 
+def check_actions(who: str, actions, num_envs: int, space: gym.spaces.Box):
+    """Actions are [num_envs, action_dim], one row per env. Else an env is handed a part of a row or a number (which
+    DeepMind Control broadcasts to every actuator, without a word), or zip leaves envs out: a one-line refusal."""
+    expected = (num_envs, *space.shape)
+    if np.shape(actions) != expected:
+        raise refusal(
+            ValueError,
+            f"{who} have shape {list(np.shape(actions))}, not [num_seeds, action_dim] = {list(expected)}: one row per "
+            "seed's env (random ones: envs.sample_actions(); envs.action_space is one env's)",
+        )
+
+
 def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
     """Undiscounted returns [num_envs, num_episodes] of `policy` (observations [num_envs, obs_dim] -> actions), one
     env per seed, stepped side by side. The envs are re-seeded with `seeds` each time, so every evaluation sees the
@@ -108,6 +121,7 @@ def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
     episode = [0] * len(envs)
     while min(episode) < num_episodes:
         actions = policy(np.stack(obs))
+        check_actions("evaluate: the policy's actions", actions, len(envs), envs[0].action_space)
         for k, env in enumerate(envs):
             if episode[k] == num_episodes:  # this seed is done; the others go on
                 continue

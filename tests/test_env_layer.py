@@ -134,6 +134,31 @@ def test_seed_envs_step_each_seeds_env_with_its_action_and_reset_where_an_episod
     envs.close()
 
 
+@pytest.mark.parametrize(
+    "env_id, seeds, shape",
+    [
+        ("dm_control/walker-run-v0", [1], (6,)),  # one env's action (envs.action_space.sample()): DMC broadcast its first
+        ("dm_control/walker-run-v0", [1, 2], (3,)),  # number to every actuator of each env zip reached
+        ("dm_control/walker-run-v0", [1, 2], (2, 1, 6)),
+        ("Pendulum-v1", [1, 2], (2, 2)),  # each env took its row's first number
+        ("Pendulum-v1", [1, 2, 3], (2, 1)),  # zip left the third env out
+    ],
+)
+def test_seed_envs_refuse_actions_that_are_not_one_row_per_seed_in_one_line(env_id, seeds, shape):
+    envs = SeedEnvs(env_id, seeds)
+    envs.reset()
+    with pytest.raises(ValueError) as error:
+        envs.step(np.zeros(shape, dtype=np.float32))
+    expected = [len(seeds), envs.action_dim]
+    assert str(error.value) == (
+        f"SeedEnvs.step: actions have shape {list(shape)}, not [num_seeds, action_dim] = {expected}: one row per seed's "
+        "env (random ones: envs.sample_actions(); envs.action_space is one env's)"
+    )
+    assert error.value.one_line
+    envs.step(envs.sample_actions())  # the right shape still steps
+    envs.close()
+
+
 class Countdown(gym.Env):
     """Episodes of `length` steps whose reward is the action; records the seeds it is reset with and counts steps."""
 
@@ -199,3 +224,11 @@ def test_buffer_holds_every_transition_with_its_true_final_observation(script, t
             assert not np.allclose(next_obs[t], obs[t + 1])
         elif t + 1 < 450:
             np.testing.assert_array_equal(next_obs[t], obs[t + 1])
+
+
+def test_evaluate_refuses_a_policy_whose_actions_are_not_one_row_per_env():
+    """A policy that squeezes the batch away ([action_dim] for one env) would hand the env a number."""
+    with pytest.raises(
+        ValueError, match=r"^evaluate: the policy's actions have shape \[1\], not \[num_seeds, action_dim\] = \[1, 1\]"
+    ):
+        evaluate(lambda obs: obs[0], [Countdown(2)], [7], num_episodes=1)

@@ -339,6 +339,23 @@ def test_a_network_main_holds_but_does_not_checkpoint_is_refused_at_the_start(tm
     )
 
 
+def test_random_actions_drawn_as_cleanrl_draws_them_are_refused_in_one_line(tmp_path):
+    """CleanRL's habit, `envs.action_space.sample()`, gives one env's action [action_dim] (SeedEnvs.action_space is
+    one env's): stepped, a DeepMind Control env would broadcast a number to every actuator. Refused at the step."""
+    edit = lambda source: source.replace("envs.sample_actions()", "envs.action_space.sample()")  # noqa: E731
+    step_line = next(
+        k
+        for k, line in enumerate(edit(open(os.path.join(REPO, "td3_continuous_action.py")).read()).splitlines(), 1)
+        if "envs.step(actions)" in line
+    )
+    result = run_fork(tmp_path, edit)
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines()[-1] == (
+        "error: SeedEnvs.step: actions have shape [1], not [num_seeds, action_dim] = [1, 1]: one row per seed's env "
+        f"(random ones: envs.sample_actions(); envs.action_space is one env's) (at fork_continuous_action.py:{step_line})"
+    )
+
+
 def test_frozen_restores_what_each_parameter_was():
     """The actor step's freeze gives each parameter back its own requires_grad: a layer a fork froze for good stays
     frozen after the block."""
