@@ -11,7 +11,7 @@ import numpy as np
 import gymnasium as gym
 import torch
 
-from rl_utils.errors import fail
+from rl_utils.errors import fail, refusal
 
 
 def rng_state(rng) -> dict:
@@ -44,6 +44,12 @@ class EpisodeRecord(gym.Wrapper):
         return self.env.reset(seed=seed, options=options)
 
     def step(self, action):
+        if np.shape(action) != self.action_space.shape:  # DeepMind Control would take a number for every actuator
+            raise refusal(
+                ValueError,
+                f"env.step: an action of shape {list(np.shape(action))} for an env whose actions are "
+                f"{list(self.action_space.shape)}: one action a step",
+            )
         self.episode["actions"].append(np.array(action))
         result = self.env.step(action)
         if result[2] or result[3]:  # terminated or truncated

@@ -53,6 +53,10 @@ def make_env(env_id: str, seed: int, video_folder: Optional[str] = None, video_e
     return env
 
 
+SEED_ENVS_HINT = "one row per seed's env (random ones: envs.sample_actions(); envs.action_space is one env's)"
+EVALUATE_HINT = "a policy maps observations [num_envs, obs_dim] to actions [num_envs, action_dim]; keep the batch dimension"
+
+
 class SeedEnvs:
     """One env per seed (--num-seeds), stepped side by side, with arrays [num_seeds, ...] in and out, as Gymnasium's
     SyncVectorEnv with its same-step autoreset: where an episode ends, `step` returns the next episode's first
@@ -83,7 +87,7 @@ class SeedEnvs:
     def step(self, actions: np.ndarray):
         """Each env steps with its seed's action. Returns next_obs, rewards, terminations, truncations (each
         [num_seeds, ...]) and infos: "real_next_obs", and "episode" (each env's episode statistics, or None)."""
-        check_actions("SeedEnvs.step: actions", actions, len(self.envs), self.action_space)
+        check_actions("SeedEnvs.step: actions", actions, len(self.envs), self.action_space, SEED_ENVS_HINT)
         next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(self.envs, actions)))
         real_next_obs = np.stack(next_obs)
         next_obs = [
@@ -99,16 +103,16 @@ class SeedEnvs:
             env.close()
 
 
-def check_actions(who: str, actions, num_envs: int, space: gym.spaces.Box):
+def check_actions(who: str, actions, num_envs: int, space: gym.spaces.Box, hint: str):
     """Actions are [num_envs, action_dim], one row per env. Else an env is handed a part of a row or a number (which
     DeepMind Control broadcasts to every actuator, without a word), or zip leaves envs out: a one-line refusal."""
     expected = (num_envs, *space.shape)
-    if np.shape(actions) != expected:
-        raise refusal(
-            ValueError,
-            f"{who} have shape {list(np.shape(actions))}, not [num_seeds, action_dim] = {list(expected)}: one row per "
-            "seed's env (random ones: envs.sample_actions(); envs.action_space is one env's)",
-        )
+    try:
+        shape = list(np.shape(actions))
+    except ValueError:  # rows of different lengths
+        shape = "ragged"
+    if shape != list(expected):
+        raise refusal(ValueError, f"{who} have shape {shape}, not [num_seeds, action_dim] = {list(expected)}: {hint}")
 
 
 def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
@@ -121,7 +125,7 @@ def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
     episode = [0] * len(envs)
     while min(episode) < num_episodes:
         actions = policy(np.stack(obs))
-        check_actions("evaluate: the policy's actions", actions, len(envs), envs[0].action_space)
+        check_actions("evaluate: the policy's actions", actions, len(envs), envs[0].action_space, EVALUATE_HINT)
         for k, env in enumerate(envs):
             if episode[k] == num_episodes:  # this seed is done; the others go on
                 continue

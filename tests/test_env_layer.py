@@ -228,7 +228,33 @@ def test_buffer_holds_every_transition_with_its_true_final_observation(script, t
 
 def test_evaluate_refuses_a_policy_whose_actions_are_not_one_row_per_env():
     """A policy that squeezes the batch away ([action_dim] for one env) would hand the env a number."""
-    with pytest.raises(
-        ValueError, match=r"^evaluate: the policy's actions have shape \[1\], not \[num_seeds, action_dim\] = \[1, 1\]"
-    ):
+    with pytest.raises(ValueError) as error:
         evaluate(lambda obs: obs[0], [Countdown(2)], [7], num_episodes=1)
+    assert str(error.value) == (
+        "evaluate: the policy's actions have shape [1], not [num_seeds, action_dim] = [1, 1]: a policy maps observations "
+        "[num_envs, obs_dim] to actions [num_envs, action_dim]; keep the batch dimension"
+    )
+    assert error.value.one_line
+
+
+def test_seed_envs_refuse_ragged_actions_in_one_line():
+    envs = SeedEnvs("Pendulum-v1", [1, 2])
+    envs.reset()
+    with pytest.raises(ValueError, match=r"^SeedEnvs.step: actions have shape ragged, not \[num_seeds, action_dim\]") as error:
+        envs.step([np.zeros(1), np.zeros(2)])
+    assert error.value.one_line
+
+
+@pytest.mark.parametrize("action", [np.float32(0.3), np.zeros(5), np.zeros((1, 6))])
+def test_every_env_refuses_an_action_without_its_shape_in_one_line(action):
+    """The env make_env builds (PPO's, RND's, EBD's, each of SeedEnvs'): a DeepMind Control env took a number, or the
+    first numbers of a longer action, for every actuator without a word."""
+    env = make_env("dm_control/walker-run-v0", 1)
+    env.reset(seed=1)
+    with pytest.raises(ValueError) as error:
+        env.step(action)
+    assert str(error.value) == (
+        f"env.step: an action of shape {list(np.shape(action))} for an env whose actions are [6]: one action a step"
+    )
+    assert error.value.one_line
+    env.step(np.zeros(6, dtype=np.float32))  # its own shape still steps
