@@ -336,8 +336,9 @@ def main(args: Args):
             with run.stop_on_nan(global_step):
                 logs = update(rb.sample(args.batch_size), policy_step)
                 if policy_step and global_step % 100 == 0:
-                    logs["charts/optimistic_share"] = optimistic_steps(global_step, args) / iteration
-                    logs["charts/resets"] = args.reset_frequency and iteration // args.reset_frequency
+                    # set by the step alone, the same in every seed's run (run.log takes one value per seed)
+                    logs["charts/optimistic_share"] = [optimistic_steps(global_step, args) / iteration] * args.num_seeds
+                    logs["charts/resets"] = [args.reset_frequency and iteration // args.reset_frequency] * args.num_seeds
                     run.log(logs, global_step)
         run.end_step(global_step)  # training speed, progress bar, checkpoints
 

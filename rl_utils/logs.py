@@ -60,18 +60,26 @@ class Logs:
         self.sps_time = time.time()
 
     def log(self, logs: dict, step: int):
-        """Writes {tag: one value per seed (a tensor [num_seeds]), or one for all (a number)}, each seed's into its
-        run; a non-finite value stops the run (where --cudagraphs catches a NaN). With several seeds a tensor of
-        another size (a 0-d one: a mean over the seeds?) stops in one line."""
+        """Writes {tag: one value per seed (a tensor [num_seeds]; with one seed, a number will do)}, each seed's into its
+        run; a non-finite value stops the run (where --cudagraphs catches a NaN). With several seeds a value of another
+        size stops in one line: a 0-d tensor (a mean over the seeds?), or a Python or NumPy number (a value read with
+        .item() from every seed's values), which would be logged as every seed's own."""
         n = len(self.writers)
         for tag, value in logs.items():
-            if n > 1 and isinstance(value, torch.Tensor) and value.numel() != n:
-                raise refusal(
-                    ValueError,
-                    f"run.log: `{tag}` is a tensor of shape {list(value.shape)} for {n} seeds: log one value per seed, "
-                    f"a tensor [{n}] (a mean over each seed's own dimensions, .mean(-1), not over the seeds; a Python "
-                    "number, such as a value read with .item(), is logged as every seed's)",
+            if n == 1 or (value.numel() if isinstance(value, torch.Tensor) else np.size(value)) == n:
+                continue
+            if isinstance(value, torch.Tensor) or np.ndim(value) > 0:
+                what = f"{'a tensor' if isinstance(value, torch.Tensor) else 'an array'} of shape {list(np.shape(value))}"
+                hint = "a mean over each seed's own dimensions, .mean(-1), not over the seeds"
+            else:
+                what = f"a number ({type(value).__name__})"
+                hint = (
+                    "a number read with .item() or float() from every seed's values is one for them all, and would be "
+                    f"logged as each seed's; a value the seeds share, such as a schedule's: [value] * {n}"
                 )
+            raise refusal(
+                ValueError, f"run.log: `{tag}` is {what} for {n} seeds: log one value per seed, a tensor [{n}] ({hint})"
+            )
         values = {tag: torch.as_tensor(value).reshape(-1).broadcast_to(n).tolist() for tag, value in logs.items()}
         for tag, seed_values in values.items():
             if not all(math.isfinite(value) for value in seed_values):

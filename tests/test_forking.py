@@ -6,6 +6,7 @@ import dataclasses
 import functools
 import os
 import random
+import re
 import subprocess
 import sys
 import types
@@ -20,6 +21,7 @@ import td3_continuous_action as td3
 from conftest import OFF_POLICY, REPO, load, needs_cuda, parse, script_command, small_args
 from rl_utils import CudaGraph, parse_args, per_seed, stack_seeds
 import rl_utils.seeds as seeds_module
+from rl_utils.logs import Logs
 from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
 
 SEEDS = pytest.mark.parametrize("seeds", [[4], [4, 5, 6]], ids=["one seed", "three seeds"])
@@ -677,13 +679,19 @@ def test_a_scheduler_given_to_run_start_resumes_where_its_schedule_was(tmp_path)
             assert torch.equal(tensor, b["nets"]["qf"][name]), (seed, name)
 
 
-def test_a_per_seed_value_logged_as_one_tensor_is_refused_with_several_seeds(tmp_path):
-    """A fork that logs the largest Q-value as a 0-d tensor (over every seed's values) would log the same number in
-    every seed's run; with one seed it is that seed's own. Several seeds: refused when it is first logged."""
+@pytest.mark.parametrize(
+    "logged, what",
+    [("qf_a_values.max()", "a tensor of shape []"), ("qf_a_values.max().item()", "a number (float)")],
+    ids=["0-d tensor", "item"],
+)
+def test_a_value_over_every_seed_logged_as_one_is_refused_with_several_seeds(tmp_path, logged, what):
+    """A fork that logs the largest Q-value over every seed's values, as a 0-d tensor or read with .item(), would log
+    the same number in every seed's run; with one seed it is that seed's own. Several seeds: refused when it is first
+    logged."""
     anchor = '            logs = {"losses/qf_values":'
 
     def edit(source):
-        return source.replace(anchor, '            logs = {"losses/qf_max": qf_a_values.max(), "losses/qf_values":', 1)
+        return source.replace(anchor, f'            logs = {{"losses/qf_max": {logged}, "losses/qf_values":', 1)
 
     one, two = tmp_path / "one", tmp_path / "two"
     one.mkdir(), two.mkdir()
@@ -693,10 +701,48 @@ def test_a_per_seed_value_logged_as_one_tensor_is_refused_with_several_seeds(tmp
     assert (
         result.stderr.strip()
         .splitlines()[-1]
-        .startswith(
-            "error: run.log: `losses/qf_max` is a tensor of shape [] for 2 seeds: log one value per seed, a tensor [2]"
-        )
+        .startswith(f"error: run.log: `losses/qf_max` is {what} for 2 seeds: log one value per seed, a tensor [2]")
     )
+
+
+def test_run_log_takes_one_value_per_seed_and_refuses_one_for_all_with_several_seeds():
+    """With several seeds each seed's run gets its own entry of a tensor, an array or a list [num_seeds] (a value the
+    seeds share given as [value] * num_seeds); a Python or NumPy number or a tensor of another size is refused before
+    anything is written. With one seed a number is that seed's."""
+
+    class Writer:
+        def __init__(self):
+            self.scalars = []
+
+        def add_scalar(self, tag, value, step):
+            self.scalars.append((tag, value, step))
+
+    def logs(num_seeds):
+        logs = Logs.__new__(Logs)
+        logs.writers = [Writer() for _ in range(num_seeds)]
+        return logs
+
+    two = logs(2)
+    two.log({"a": torch.tensor([1.0, 2.0]), "b": np.array([3.0, 4.0]), "c": [0.5] * 2}, 7)
+    assert [w.scalars for w in two.writers] == [
+        [("a", 1.0, 7), ("b", 3.0, 7), ("c", 0.5, 7)],
+        [("a", 2.0, 7), ("b", 4.0, 7), ("c", 0.5, 7)],
+    ]
+    for value, what in [
+        (1.5, "a number (float)"),
+        (np.float32(1.5), "a number (float32)"),
+        (3, "a number (int)"),
+        (torch.tensor(1.5), "a tensor of shape []"),
+        (torch.ones(3), "a tensor of shape [3]"),
+        (np.ones((2, 2)), "an array of shape [2, 2]"),
+    ]:
+        fresh = logs(2)
+        with pytest.raises(ValueError, match=re.escape(f"run.log: `b` is {what} for 2 seeds: log one value per seed")):
+            fresh.log({"a": torch.ones(2), "b": value}, 7)
+        assert all(w.scalars == [] for w in fresh.writers)
+    one = logs(1)
+    one.log({"a": 1.5, "b": torch.tensor(2.5)}, 3)
+    assert one.writers[0].scalars == [("a", 1.5, 3), ("b", 2.5, 3)]
 
 
 def test_a_refusal_in_a_forks_per_seed_function_is_one_line_on_the_command_line(tmp_path, monkeypatch):
