@@ -5,6 +5,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from rl_utils.errors import refusal
+
 
 class Batch(NamedTuple):
     observations: torch.Tensor
@@ -12,6 +14,29 @@ class Batch(NamedTuple):
     next_observations: torch.Tensor
     rewards: torch.Tensor
     terminations: torch.Tensor
+
+
+def check_what_is_stored(next_obs, terminations):
+    """The two CleanRL-era slips `SeedEnvs.step`'s marks catch (rl_utils.envs.StepObservations): storing the next_obs
+    it returned, whose rows where an episode ended are the next episode's first observation, and storing `terminations
+    | truncations` as terminations, which stops the target bootstrapping where a time limit cut an episode (every
+    DeepMind Control episode)."""
+    first = getattr(next_obs, "first_of_episode", None)
+    if first is not None and first.any():
+        raise refusal(
+            ValueError,
+            f"ReplayBuffer.add: next_obs is the one envs.step returned, whose row for seed index {int(first.argmax())} is "
+            "the next episode's first observation (its episode ended at this step): store the observation the step led "
+            'to, infos["real_next_obs"]',
+        )
+    cut = getattr(next_obs, "truncated", None)
+    if cut is not None and (stopped := cut & (np.asarray(terminations) != 0)).any():
+        raise refusal(
+            ValueError,
+            f"ReplayBuffer.add: terminations is 1 for seed index {int(stopped.argmax())}, whose episode its time limit "
+            "cut (truncated, not terminated): its target must bootstrap from the next observation; store the "
+            "terminations envs.step returned, not terminations | truncations",
+        )
 
 
 class ReplayBuffer:
@@ -31,10 +56,12 @@ class ReplayBuffer:
         shapes = {"obs": (obs_dim,), "next_obs": (obs_dim,), "actions": (action_dim,), "rewards": (), "terminations": ()}
         for name, value in fields.items():
             if np.shape(value) != (self.num_seeds, *shapes[name]):
-                raise ValueError(
+                raise refusal(
+                    ValueError,
                     f"ReplayBuffer.add: {name} has shape {list(np.shape(value))}, not {[self.num_seeds, *shapes[name]]}; "
-                    "the order is add(obs, next_obs, actions, rewards, terminations), each with a leading seeds dimension"
+                    "the order is add(obs, next_obs, actions, rewards, terminations), each with a leading seeds dimension",
                 )
+        check_what_is_stored(next_obs, terminations)
         scalars = np.stack([rewards, terminations], -1)
         row = np.concatenate([obs, actions, next_obs, scalars], -1, dtype=np.float32)
         self.storage[:, self.pos] = torch.from_numpy(row)

@@ -57,6 +57,25 @@ SEED_ENVS_HINT = "one row per seed's env (random ones: envs.sample_actions(); en
 EVALUATE_HINT = "a policy maps observations [num_envs, obs_dim] to actions [num_envs, action_dim]; keep the batch dimension"
 
 
+class StepObservations(np.ndarray):
+    """Observations [num_seeds, obs_dim] as `SeedEnvs.step` returns them, marked for `ReplayBuffer.add`'s checks:
+    next_obs with `first_of_episode` (the rows that are the next episode's first observation, where an episode
+    ended), infos["real_next_obs"] with `truncated` (the rows whose episode its time limit cut, not ended: they
+    bootstrap). The marks are the returned array's own: a copy or a slice of it carries none."""
+
+    first_of_episode = truncated = None
+
+    def __repr__(self):
+        return repr(self.view(np.ndarray))
+
+
+def marked(observations: np.ndarray, **rows) -> StepObservations:
+    observations = observations.view(StepObservations)
+    for mark, value in rows.items():
+        setattr(observations, mark, value)
+    return observations
+
+
 class SeedEnvs:
     """One env per seed (--num-seeds), stepped side by side, with arrays [num_seeds, ...] in and out, as Gymnasium's
     SyncVectorEnv with its same-step autoreset: where an episode ends, `step` returns the next episode's first
@@ -89,14 +108,13 @@ class SeedEnvs:
         [num_seeds, ...]) and infos: "real_next_obs", and "episode" (each env's episode statistics, or None)."""
         check_actions("SeedEnvs.step: actions", actions, len(self.envs), self.action_space, SEED_ENVS_HINT)
         next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(self.envs, actions)))
-        real_next_obs = np.stack(next_obs)
-        next_obs = [
-            env.reset()[0] if done else obs
-            for env, obs, done in zip(self.envs, next_obs, np.logical_or(terminations, truncations))
-        ]
-        episodes = [info.get("episode") if end or cut else None for info, end, cut in zip(infos, terminations, truncations)]
+        terminations, truncations = np.array(terminations), np.array(truncations)
+        ended = terminations | truncations
+        real_next_obs = marked(np.stack(next_obs), truncated=truncations & ~terminations)
+        next_obs = [env.reset()[0] if done else obs for env, obs, done in zip(self.envs, next_obs, ended)]
+        episodes = [info.get("episode") if done else None for info, done in zip(infos, ended)]
         infos = {"real_next_obs": real_next_obs, "episode": episodes}
-        return np.stack(next_obs), np.array(rewards), np.array(terminations), np.array(truncations), infos
+        return marked(np.stack(next_obs), first_of_episode=ended), np.array(rewards), terminations, truncations, infos
 
     def close(self):
         for env in self.envs:

@@ -679,6 +679,76 @@ def test_a_scheduler_given_to_run_start_resumes_where_its_schedule_was(tmp_path)
             assert torch.equal(tensor, b["nets"]["qf"][name]), (seed, name)
 
 
+@pytest.mark.parametrize("num_seeds", [1, 2])
+@pytest.mark.parametrize(
+    "stored, refusal",
+    [
+        (
+            "rb.add(obs, next_obs, actions, rewards, terminations)",
+            "ReplayBuffer.add: next_obs is the one envs.step returned, whose row for seed index 0 is the next episode's "
+            "first observation (its episode ended at this step): store the observation the step led to, "
+            'infos["real_next_obs"]',
+        ),
+        (
+            'rb.add(obs, infos["real_next_obs"], actions, rewards, np.logical_or(terminations, truncations))',
+            "ReplayBuffer.add: terminations is 1 for seed index 0, whose episode its time limit cut (truncated, not "
+            "terminated): its target must bootstrap from the next observation; store the terminations envs.step "
+            "returned, not terminations | truncations",
+        ),
+    ],
+    ids=["next_obs", "dones"],
+)
+def test_a_fork_storing_the_reset_observation_or_truncations_as_ends_stops_at_the_first_episode_end(
+    tmp_path, stored, refusal, num_seeds
+):
+    """CleanRL-era slips: a fork of TD3 that stores the next_obs envs.step returned (where an episode ended, the next
+    episode's first observation) or `terminations | truncations` (no bootstrap where Pendulum's 200-step time limit
+    cuts an episode, as every DeepMind Control episode is cut) would train on wrong targets; it stops at the first
+    episode's end, step 199, naming the fix and the fork's line."""
+    line = '        rb.add(obs, infos["real_next_obs"], actions, rewards, terminations)'
+
+    def edit(source):
+        assert line in source
+        return source.replace(line, "        " + stored, 1)
+
+    result = run_fork(tmp_path, edit, num_seeds)
+    assert result.returncode == 1
+    last = result.stderr.strip().splitlines()[-1]
+    assert re.fullmatch(re.escape(f"error: {refusal} (at fork_continuous_action.py:") + r"\d+\)", last), last
+
+
+def test_the_marks_of_what_envs_step_returns_are_its_own_arrays(tmp_path):
+    """SeedEnvs.step marks its next_obs where an episode ended and its real_next_obs where a time limit cut one; a copy
+    carries no mark, so CleanRL's own fix (next_obs.copy() with the final observations put back) stores as any array."""
+    from rl_utils.buffers import ReplayBuffer
+    from rl_utils.envs import SeedEnvs
+
+    envs = SeedEnvs("Pendulum-v1", [1, 2])
+    obs = envs.reset()
+    rb = ReplayBuffer(300, envs.obs_dim, envs.action_dim, 2, torch.device("cpu"))
+    for step in range(200):
+        next_obs, rewards, terminations, truncations, infos = envs.step(envs.sample_actions())
+        real = infos["real_next_obs"]
+        assert next_obs.first_of_episode.tolist() == [step == 199] * 2 and real.truncated.tolist() == [step == 199] * 2
+        assert isinstance(next_obs, np.ndarray) and repr(next_obs).startswith("array(")
+        if step == 199:
+            assert not np.array_equal(next_obs, real)  # the next episode's first observations
+            fixed = next_obs.copy()
+            fixed[truncations] = real[truncations]
+            rb.add(obs, fixed, envs.sample_actions(), rewards, terminations)
+            assert torch.equal(rb.storage[:, step, -envs.obs_dim - 2 : -2], torch.from_numpy(np.asarray(real, np.float32)))
+            with pytest.raises(ValueError, match="^ReplayBuffer.add: next_obs is the one envs.step returned"):
+                rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)
+            with pytest.raises(ValueError, match="^ReplayBuffer.add: terminations is 1 for seed index 0, whose episode"):
+                rb.add(obs, real, envs.sample_actions(), rewards, terminations | truncations)
+            rb.add(obs, np.array(real), envs.sample_actions(), rewards, terminations | truncations)  # unmarked: stored
+        else:
+            rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)  # no episode ended: the same rows
+        obs = next_obs
+    assert rb.size == 201
+    envs.close()
+
+
 @pytest.mark.parametrize(
     "logged, what",
     [("qf_a_values.max()", "a tensor of shape []"), ("qf_a_values.max().item()", "a number (float)")],
