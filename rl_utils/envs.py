@@ -68,6 +68,13 @@ class StepObservations(np.ndarray):
     def __repr__(self):
         return repr(self.view(np.ndarray))
 
+    def __array_wrap__(self, array, context=None, return_scalar=False):
+        """What NumPy computes from it (a sum, `obs * 2`) is a plain array or number; an in-place update keeps it."""
+        if array is self:
+            return self
+        array = array.view(np.ndarray)
+        return array[()] if return_scalar else array
+
 
 def marked(observations: np.ndarray, **rows) -> StepObservations:
     observations = observations.view(StepObservations)

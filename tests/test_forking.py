@@ -746,6 +746,32 @@ def test_the_marks_of_what_envs_step_returns_are_its_own_arrays(tmp_path):
             rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)  # no episode ended: the same rows
         obs = next_obs
     assert rb.size == 201
+    assert type(next_obs.max()) is np.float32 and type(next_obs * 2) is np.ndarray  # plain results, as from any array
+    envs.close()
+
+
+def test_a_fork_storing_the_reset_observation_is_refused_where_one_seeds_episode_ends_alone():
+    """Hopper-v4, seeds 1 and 2, random actions: the second seed's hopper falls first, alone (step 12); the refusal
+    names its index, and where no episode ended the same rows are stored as they are."""
+    from rl_utils.buffers import ReplayBuffer
+    from rl_utils.envs import SeedEnvs
+
+    envs = SeedEnvs("Hopper-v4", [1, 2])
+    obs = envs.reset()
+    rb = ReplayBuffer(100, envs.obs_dim, envs.action_dim, 2, torch.device("cpu"))
+    for step in range(100):
+        next_obs, rewards, terminations, truncations, infos = envs.step(envs.sample_actions())
+        if terminations.any():
+            break
+        rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)
+        obs = next_obs
+    assert terminations.tolist() == [False, True] and not truncations.any(), (step, terminations)
+    with pytest.raises(
+        ValueError, match="^ReplayBuffer.add: next_obs is the one envs.step returned, whose row for seed index 1"
+    ):
+        rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)
+    rb.add(obs, infos["real_next_obs"], envs.sample_actions(), rewards, terminations)  # a termination: stored
+    assert rb.size == step + 1
     envs.close()
 
 
