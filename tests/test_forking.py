@@ -19,7 +19,8 @@ import torch.nn as nn
 import sac_continuous_action as sac
 import td3_continuous_action as td3
 from conftest import OFF_POLICY, REPO, load, needs_cuda, parse, script_command, small_args
-from rl_utils import CudaGraph, parse_args, per_seed, stack_seeds
+from rl_utils import CudaGraph, SeedEnvs, parse_args, per_seed, stack_seeds
+from rl_utils.buffers import ReplayBuffer
 import rl_utils.seeds as seeds_module
 from rl_utils.logs import Logs
 from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
@@ -717,15 +718,15 @@ def test_a_fork_storing_the_reset_observation_or_truncations_as_ends_stops_at_th
     assert re.fullmatch(re.escape(f"error: {refusal} (at fork_continuous_action.py:") + r"\d+\)", last), last
 
 
-def test_the_marks_of_what_envs_step_returns_are_its_own_arrays(tmp_path):
+def two_seed_envs_and_buffer(env_id, capacity):
+    envs = SeedEnvs(env_id, [1, 2])
+    return envs, envs.reset(), ReplayBuffer(capacity, envs.obs_dim, envs.action_dim, 2, torch.device("cpu"))
+
+
+def test_the_marks_of_what_envs_step_returns_are_its_own_arrays():
     """SeedEnvs.step marks its next_obs where an episode ended and its real_next_obs where a time limit cut one; a copy
     carries no mark, so CleanRL's own fix (next_obs.copy() with the final observations put back) stores as any array."""
-    from rl_utils.buffers import ReplayBuffer
-    from rl_utils.envs import SeedEnvs
-
-    envs = SeedEnvs("Pendulum-v1", [1, 2])
-    obs = envs.reset()
-    rb = ReplayBuffer(300, envs.obs_dim, envs.action_dim, 2, torch.device("cpu"))
+    envs, obs, rb = two_seed_envs_and_buffer("Pendulum-v1", 300)
     for step in range(200):
         next_obs, rewards, terminations, truncations, infos = envs.step(envs.sample_actions())
         real = infos["real_next_obs"]
@@ -753,12 +754,7 @@ def test_the_marks_of_what_envs_step_returns_are_its_own_arrays(tmp_path):
 def test_a_fork_storing_the_reset_observation_is_refused_where_one_seeds_episode_ends_alone():
     """Hopper-v4, seeds 1 and 2, random actions: the second seed's hopper falls first, alone (step 12); the refusal
     names its index, and where no episode ended the same rows are stored as they are."""
-    from rl_utils.buffers import ReplayBuffer
-    from rl_utils.envs import SeedEnvs
-
-    envs = SeedEnvs("Hopper-v4", [1, 2])
-    obs = envs.reset()
-    rb = ReplayBuffer(100, envs.obs_dim, envs.action_dim, 2, torch.device("cpu"))
+    envs, obs, rb = two_seed_envs_and_buffer("Hopper-v4", 100)
     for step in range(100):
         next_obs, rewards, terminations, truncations, infos = envs.step(envs.sample_actions())
         if terminations.any():
