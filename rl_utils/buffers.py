@@ -5,6 +5,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from rl_utils import envs as env_layer
 from rl_utils.errors import refusal
 
 
@@ -17,18 +18,22 @@ class Batch(NamedTuple):
 
 
 def check_what_is_stored(next_obs, terminations):
-    """The two CleanRL-era slips `SeedEnvs.step`'s marks catch (rl_utils.envs.StepObservations): storing the next_obs
-    it returned, whose rows where an episode ended are the next episode's first observation, and storing `terminations
-    | truncations` as terminations, which stops the target bootstrapping where a time limit cut an episode (every
-    DeepMind Control episode)."""
-    first = getattr(next_obs, "first_of_episode", None)
-    if first is not None and first.any():
-        raise refusal(
-            ValueError,
-            f"ReplayBuffer.add: next_obs is the one envs.step returned, whose row for seed index {int(first.argmax())} is "
-            "the next episode's first observation (its episode ended at this step): store the observation the step led "
-            'to, infos["real_next_obs"]',
-        )
+    """The two CleanRL-era slips: storing the next_obs `SeedEnvs.step` returned, whose rows where an episode ended are
+    the next episode's first observation (found by value, in any array, against the latest step's record), and storing
+    `terminations | truncations` as terminations, which stops the target bootstrapping where a time limit cut an
+    episode, every DeepMind Control episode (found by the `truncated` mark on the next_obs arrays step returned and
+    their copies, rl_utils.envs.StepObservations)."""
+    ends = env_layer.latest_episode_ends
+    if ends is not None and np.shape(next_obs) == ends.shape:
+        stored = np.asarray(next_obs)
+        for row, first, real in zip(ends.rows, ends.first_observations, ends.real_next_observations):
+            if np.array_equal(stored[row], first) and not np.array_equal(first, real):
+                raise refusal(
+                    ValueError,
+                    f"ReplayBuffer.add: next_obs is the one envs.step returned, whose row for seed index {row} is the next "
+                    "episode's first observation (its episode ended at this step): store the observation the step led "
+                    'to, infos["real_next_obs"]',
+                )
     cut = getattr(next_obs, "truncated", None)
     if cut is not None and (stopped := cut & (np.asarray(terminations) != 0)).any():
         raise refusal(

@@ -3,7 +3,7 @@ through shimmy) as plain environments with flat float32 observations and float32
 side by side (`SeedEnvs`); and the deterministic evaluation every script reports (`evaluate`)."""
 
 import difflib
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import gymnasium as gym
 import numpy as np
@@ -58,12 +58,16 @@ EVALUATE_HINT = "a policy maps observations [num_envs, obs_dim] to actions [num_
 
 
 class StepObservations(np.ndarray):
-    """Observations [num_seeds, obs_dim] as `SeedEnvs.step` returns them, marked for `ReplayBuffer.add`'s checks:
-    next_obs with `first_of_episode` (the rows that are the next episode's first observation, where an episode
-    ended), infos["real_next_obs"] with `truncated` (the rows whose episode its time limit cut, not ended: they
-    bootstrap). The marks are the returned array's own: a copy or a slice of it carries none."""
+    """Observations [num_seeds, obs_dim] as `SeedEnvs.step` returns them, next_obs and infos["real_next_obs"], marked
+    with `truncated` (the rows whose episode its time limit cut, not ended: they bootstrap) for `ReplayBuffer.add`'s
+    check of terminations. A copy of the same shape keeps the mark (`next_obs.copy()`, `.astype`); `np.asarray` and
+    `np.array` give a plain array without it."""
 
-    first_of_episode = truncated = None
+    truncated = None
+
+    def __array_finalize__(self, source):
+        if getattr(source, "shape", None) == self.shape:
+            self.truncated = getattr(source, "truncated", None)
 
     def __repr__(self):
         return repr(self.view(np.ndarray))
@@ -76,11 +80,24 @@ class StepObservations(np.ndarray):
         return array[()] if return_scalar else array
 
 
-def marked(observations: np.ndarray, **rows) -> StepObservations:
+def marked(observations: np.ndarray, truncated: np.ndarray) -> StepObservations:
     observations = observations.view(StepObservations)
-    for mark, value in rows.items():
-        setattr(observations, mark, value)
+    observations.truncated = truncated
     return observations
+
+
+class EpisodeEnds(NamedTuple):
+    """Where the latest `SeedEnvs.step` ended episodes: the shape of its next_obs, the seed indices, the next episode's
+    first observations it returned for them in next_obs, and the observations the step led to. `ReplayBuffer.add` refuses a next_obs whose
+    rows are the former, whatever array holds them (the one returned, or a copy)."""
+
+    shape: tuple
+    rows: np.ndarray
+    first_observations: np.ndarray
+    real_next_observations: np.ndarray
+
+
+latest_episode_ends: Optional[EpisodeEnds] = None
 
 
 class SeedEnvs:
@@ -105,6 +122,8 @@ class SeedEnvs:
 
     def reset(self) -> np.ndarray:
         """Every env's first observation of a run: each env reset with its seed."""
+        global latest_episode_ends
+        latest_episode_ends = None
         return np.stack([env.reset(seed=seed)[0] for env, seed in zip(self.envs, self.seeds)])
 
     def sample_actions(self) -> np.ndarray:
@@ -113,15 +132,20 @@ class SeedEnvs:
     def step(self, actions: np.ndarray):
         """Each env steps with its seed's action. Returns next_obs, rewards, terminations, truncations (each
         [num_seeds, ...]) and infos: "real_next_obs", and "episode" (each env's episode statistics, or None)."""
+        global latest_episode_ends
         check_actions("SeedEnvs.step: actions", actions, len(self.envs), self.action_space, SEED_ENVS_HINT)
         next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(self.envs, actions)))
         terminations, truncations = np.array(terminations), np.array(truncations)
-        ended = terminations | truncations
-        real_next_obs = marked(np.stack(next_obs), truncated=truncations & ~terminations)
+        ended, cut = terminations | truncations, truncations & ~terminations
+        real_next_obs = marked(np.stack(next_obs), cut)
         next_obs = [env.reset()[0] if done else obs for env, obs, done in zip(self.envs, next_obs, ended)]
+        next_obs = marked(np.stack(next_obs), cut)
+        rows = np.flatnonzero(ended)
+        ends = EpisodeEnds(next_obs.shape, rows, np.array(next_obs[rows]), np.array(real_next_obs[rows]))
+        latest_episode_ends = ends if rows.size else None
         episodes = [info.get("episode") if done else None for info, done in zip(infos, ended)]
         infos = {"real_next_obs": real_next_obs, "episode": episodes}
-        return marked(np.stack(next_obs), first_of_episode=ended), np.array(rewards), terminations, truncations, infos
+        return next_obs, np.array(rewards), terminations, truncations, infos
 
     def close(self):
         for env in self.envs:

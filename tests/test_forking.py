@@ -696,21 +696,32 @@ def test_a_scheduler_given_to_run_start_resumes_where_its_schedule_was(tmp_path)
             "terminated): its target must bootstrap from the next observation; store the terminations envs.step "
             "returned, not terminations | truncations",
         ),
+        (
+            "real_next_obs = next_obs.copy()\n"
+            "for idx, trunc in enumerate(truncations):\n"
+            "    if trunc:\n"
+            '        real_next_obs[idx] = infos["real_next_obs"][idx]\n'
+            "rb.add(obs, real_next_obs, actions, rewards, terminations | truncations)",
+            "ReplayBuffer.add: terminations is 1 for seed index 0, whose episode its time limit cut (truncated, not "
+            "terminated): its target must bootstrap from the next observation; store the terminations envs.step "
+            "returned, not terminations | truncations",
+        ),
     ],
-    ids=["next_obs", "dones"],
+    ids=["next_obs", "dones", "fixed-up copy and dones"],
 )
 def test_a_fork_storing_the_reset_observation_or_truncations_as_ends_stops_at_the_first_episode_end(
     tmp_path, stored, refusal, num_seeds
 ):
     """CleanRL-era slips: a fork of TD3 that stores the next_obs envs.step returned (where an episode ended, the next
     episode's first observation) or `terminations | truncations` (no bootstrap where Pendulum's 200-step time limit
-    cuts an episode, as every DeepMind Control episode is cut) would train on wrong targets; it stops at the first
-    episode's end, step 199, naming the fix and the fork's line."""
+    cuts an episode, as every DeepMind Control episode is cut), with the observations the step led to or with
+    CleanRL's older fix-up (a copy of next_obs, the final observations put back), would train on wrong targets; it
+    stops at the first episode's end, step 199, naming the fix and the fork's line."""
     line = '        rb.add(obs, infos["real_next_obs"], actions, rewards, terminations)'
 
     def edit(source):
         assert line in source
-        return source.replace(line, "        " + stored, 1)
+        return source.replace(line, "".join("        " + part for part in stored.splitlines(True)), 1)
 
     result = run_fork(tmp_path, edit, num_seeds)
     assert result.returncode == 1
@@ -723,31 +734,40 @@ def two_seed_envs_and_buffer(env_id, capacity):
     return envs, envs.reset(), ReplayBuffer(capacity, envs.obs_dim, envs.action_dim, 2, torch.device("cpu"))
 
 
-def test_the_marks_of_what_envs_step_returns_are_its_own_arrays():
-    """SeedEnvs.step marks its next_obs where an episode ended and its real_next_obs where a time limit cut one; a copy
-    carries no mark, so CleanRL's own fix (next_obs.copy() with the final observations put back) stores as any array."""
+def test_what_is_stored_is_checked_in_copies_of_what_envs_step_returns():
+    """Where an episode ended, next_obs holds the next episode's first observation: refused in any array that holds
+    it (a copy, np.array); CleanRL's fix (next_obs.copy() with the final observations put back) stores the observations
+    the step led to. The time limit's rows are marked on next_obs and real_next_obs, and on their copies: stored with
+    terminations | truncations, refused; np.asarray (the escape for a fork that means it) drops the mark."""
     envs, obs, rb = two_seed_envs_and_buffer("Pendulum-v1", 300)
     for step in range(200):
         next_obs, rewards, terminations, truncations, infos = envs.step(envs.sample_actions())
         real = infos["real_next_obs"]
-        assert next_obs.first_of_episode.tolist() == [step == 199] * 2 and real.truncated.tolist() == [step == 199] * 2
+        assert next_obs.truncated.tolist() == real.truncated.tolist() == [step == 199] * 2
         assert isinstance(next_obs, np.ndarray) and repr(next_obs).startswith("array(")
         if step == 199:
             assert not np.array_equal(next_obs, real)  # the next episode's first observations
             fixed = next_obs.copy()
-            fixed[truncations] = real[truncations]
+            for idx, trunc in enumerate(truncations):
+                if trunc:
+                    fixed[idx] = real[idx]
             rb.add(obs, fixed, envs.sample_actions(), rewards, terminations)
             assert torch.equal(rb.storage[:, step, -envs.obs_dim - 2 : -2], torch.from_numpy(np.asarray(real, np.float32)))
-            with pytest.raises(ValueError, match="^ReplayBuffer.add: next_obs is the one envs.step returned"):
-                rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)
-            with pytest.raises(ValueError, match="^ReplayBuffer.add: terminations is 1 for seed index 0, whose episode"):
-                rb.add(obs, real, envs.sample_actions(), rewards, terminations | truncations)
-            rb.add(obs, np.array(real), envs.sample_actions(), rewards, terminations | truncations)  # unmarked: stored
+            for stored in (next_obs, next_obs.copy(), np.array(next_obs), next_obs.astype(np.float64), next_obs.tolist()):
+                with pytest.raises(ValueError, match="^ReplayBuffer.add: next_obs is the one envs.step returned"):
+                    rb.add(obs, stored, envs.sample_actions(), rewards, terminations)
+            for stored in (real, fixed, real.copy()):
+                with pytest.raises(ValueError, match="^ReplayBuffer.add: terminations is 1 for seed index 0, whose episode"):
+                    rb.add(obs, stored, envs.sample_actions(), rewards, terminations | truncations)
+            rb.add(obs, np.asarray(real), envs.sample_actions(), rewards, terminations | truncations)  # unmarked: stored
         else:
             rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)  # no episode ended: the same rows
         obs = next_obs
-    assert rb.size == 201
+    assert rb.size == 201 and rb.storage[:, 200, -1].tolist() == [1.0, 1.0]
     assert type(next_obs.max()) is np.float32 and type(next_obs * 2) is np.ndarray  # plain results, as from any array
+    assert next_obs[:1].truncated is None  # a slice of other rows carries no mark
+    next_obs, *_ = envs.step(envs.sample_actions())
+    rb.add(obs, next_obs.copy(), envs.sample_actions(), rewards, terminations)  # the next step: no episode ended
     envs.close()
 
 
