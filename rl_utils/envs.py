@@ -11,6 +11,7 @@ import torch
 
 from rl_utils.checkpoints import EpisodeRecord
 from rl_utils.errors import fail, refusal
+from rl_utils.seeds import python_draws, same_state
 
 
 def float32_box(space: gym.spaces.Box) -> gym.spaces.Box:
@@ -99,6 +100,9 @@ class EpisodeEnds(NamedTuple):
 
 latest_episode_ends: Optional[EpisodeEnds] = None
 
+# with several seeds, the steps of SeedEnvs between two looks at Python's and NumPy's global generators
+DRAWS_EVERY = 100
+
 
 class SeedEnvs:
     """One env per seed (--num-seeds), stepped side by side, with arrays [num_seeds, ...] in and out, as Gymnasium's
@@ -113,6 +117,7 @@ class SeedEnvs:
         self.action_space = self.envs[0].action_space  # one env's
         self.obs_dim = int(np.prod(self.envs[0].observation_space.shape))
         self.action_dim = int(np.prod(self.action_space.shape))
+        self.steps, self.draws = 0, None
 
     def __iter__(self):
         return iter(self.envs)
@@ -123,7 +128,7 @@ class SeedEnvs:
     def reset(self) -> np.ndarray:
         """Every env's first observation of a run: each env reset with its seed."""
         global latest_episode_ends
-        latest_episode_ends = None
+        latest_episode_ends, self.draws = None, None
         return np.stack([env.reset(seed=seed)[0] for env, seed in zip(self.envs, self.seeds)])
 
     def sample_actions(self) -> np.ndarray:
@@ -134,6 +139,7 @@ class SeedEnvs:
         [num_seeds, ...]) and infos: "real_next_obs", and "episode" (each env's episode statistics, or None)."""
         global latest_episode_ends
         check_actions("SeedEnvs.step: actions", actions, len(self.envs), self.action_space, SEED_ENVS_HINT)
+        self.watch_draws()
         next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(self.envs, actions)))
         terminations, truncations = np.array(terminations), np.array(truncations)
         ended, cut = terminations | truncations, truncations & ~terminations
@@ -146,6 +152,25 @@ class SeedEnvs:
         episodes = [info.get("episode") if done else None for info, done in zip(infos, ended)]
         infos = {"real_next_obs": real_next_obs, "episode": episodes}
         return next_obs, np.array(rewards), terminations, truncations, infos
+
+    def watch_draws(self):
+        """With several seeds, Python's and NumPy's global generators are one stream in the process, not any seed's:
+        nothing of the loop draws from them (the envs draw from their own). A fork that does (exploration noise
+        np.random.normal(0, s, size=envs.action_space.shape), one seed's shape: the same noise for every seed) stops
+        within DRAWS_EVERY steps."""
+        self.steps += 1
+        if len(self.envs) == 1 or (self.draws is not None and self.steps % DRAWS_EVERY):
+            return
+        draws = python_draws()
+        if self.draws is not None and not same_state(self.draws, draws):
+            raise refusal(
+                RuntimeError,
+                f"SeedEnvs.step with {len(self.envs)} seeds: Python's or NumPy's global random generator drew in the loop "
+                "(np.random.normal(0, s, size=envs.action_space.shape)?): with several seeds it is one stream for all of "
+                "them, and a draw of one seed's shape gives every seed the same numbers; draw with torch inside a "
+                "per-seed function, as noisy_action does (per_seed(noisy_action)(obs, actor, ...))",
+            )
+        self.draws = draws
 
     def close(self):
         for env in self.envs:

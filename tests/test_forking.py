@@ -21,6 +21,7 @@ import td3_continuous_action as td3
 from conftest import OFF_POLICY, REPO, load, needs_cuda, parse, script_command, small_args
 from rl_utils import CudaGraph, SeedEnvs, parse_args, per_seed, stack_seeds
 from rl_utils.buffers import ReplayBuffer
+import rl_utils.envs as env_layer
 import rl_utils.seeds as seeds_module
 from rl_utils.logs import Logs
 from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
@@ -357,6 +358,61 @@ def test_random_actions_drawn_as_cleanrl_draws_them_are_refused_in_one_line(tmp_
         "error: SeedEnvs.step: actions have shape [1], not [num_seeds, action_dim] = [1, 1]: one row per seed's env "
         f"(random ones: envs.sample_actions(); envs.action_space is one env's) (at fork_continuous_action.py:{step_line})"
     )
+
+
+@pytest.mark.parametrize("num_seeds", [1, 2])
+def test_exploration_noise_drawn_from_numpy_in_the_loop_is_refused_with_several_seeds(tmp_path, num_seeds):
+    """A fork of TD3 that adds NumPy noise of one seed's shape to the actor's actions in the loop, as TD3's original
+    code does: one seed, the noise is that seed's own and the run ends; two, every seed would get the same noise, and
+    the run stops within 100 steps of the first draw (step 200, the end of the random actions), naming the fix."""
+    line = (
+        "            actions = per_seed(noisy_action)(to_device(obs, device), actor, args.exploration_noise).cpu().numpy()\n"
+    )
+    noised = (
+        "            actions = per_seed(actor)(to_device(obs, device)).detach().cpu().numpy()\n"
+        "            actions += np.random.normal(0, 0.1, size=envs.action_space.shape)\n"
+        "            actions = actions.clip(envs.action_space.low, envs.action_space.high).astype(np.float32)\n"
+    )
+
+    def edit(source):
+        assert line in source
+        return source.replace(line, noised, 1)
+
+    result = run_fork(tmp_path, edit, num_seeds)
+    if num_seeds == 1:
+        assert result.returncode == 0, result.stderr[-2000:]
+        return
+    assert result.returncode == 1
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith(
+        "error: SeedEnvs.step with 2 seeds: Python's or NumPy's global random generator drew in the loop "
+        "(np.random.normal(0, s, size=envs.action_space.shape)?): with several seeds it is one stream for all of them"
+    ), last
+    assert "draw with torch inside a per-seed function, as noisy_action does" in last
+
+
+def test_the_global_generators_are_watched_between_the_steps_of_several_seeds_only():
+    """SeedEnvs with two seeds: 300 steps without a draw of the loop's own run; a draw of NumPy's or Python's global
+    generator between two steps stops within DRAWS_EVERY steps; with one seed the global generators are its own."""
+    for draw in (lambda: np.random.normal(size=1), lambda: random.random()):
+        envs = SeedEnvs("Pendulum-v1", [1, 2])
+        envs.reset()
+        for _ in range(300):
+            envs.step(envs.sample_actions())
+        steps = 0
+        with pytest.raises(RuntimeError, match="^SeedEnvs.step with 2 seeds: Python's or NumPy's global random generator"):
+            while steps < 200:
+                draw()
+                envs.step(envs.sample_actions())
+                steps += 1
+        assert steps == env_layer.DRAWS_EVERY - 1  # the look at the 400th step
+        envs.close()
+    envs = SeedEnvs("Pendulum-v1", [1])
+    envs.reset()
+    for _ in range(300):
+        np.random.normal()
+        envs.step(envs.sample_actions())
+    envs.close()
 
 
 def test_frozen_restores_what_each_parameter_was():
