@@ -75,7 +75,8 @@ def probes(fn) -> list:
             if name in f.__globals__ and not isinstance(f.__globals__[name], (types.ModuleType, type)):
                 value(name, lambda g=f.__globals__, k=name: g[k], depth)
 
-    module = getattr(inspect.unwrap(fn) if isinstance(fn, types.FunctionType) else fn, "__module__", None)
+    top = fn.func if isinstance(fn, functools.partial) else fn  # the module whose functions are followed: fn's own
+    module = getattr(inspect.unwrap(top) if isinstance(top, types.FunctionType) else top, "__module__", None)
     function(getattr(fn, "__name__", "fn"), fn, 0)
     return found
 

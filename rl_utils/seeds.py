@@ -179,9 +179,33 @@ def check_stacked(fn, networks: nn.Module, state: dict, n: int):
 
 
 def python_draws() -> tuple:
-    """The states of the generators a vmap cannot draw from per seed: Python's and NumPy's global ones (a Generator
-    of a fork's own, np.random.default_rng(), is not watched)."""
+    """The states of the generators a vmap cannot draw from per seed: Python's and NumPy's global ones."""
     return random.getstate(), np.random.get_state(legacy=False)
+
+
+GENERATORS = (np.random.Generator, np.random.RandomState, random.Random)
+
+
+def own_generators(fn) -> list:
+    """The random generators of a fork's own that fn reaches, [(name, generator)]: a NumPy Generator or RandomState
+    or a random.Random in its closure, the globals it names, or its helpers' (rl_utils.gpu.probes)."""
+    from rl_utils.gpu import probes
+
+    found = {}
+    for label, read in probes(fn):
+        try:
+            x = read()
+        except (ValueError, KeyError, AttributeError, IndexError):  # an unfilled cell
+            continue
+        if isinstance(x, GENERATORS) and id(x) not in found:
+            found[id(x)] = (label, x)
+    return list(found.values())
+
+
+def generator_state(generator):
+    if isinstance(generator, np.random.Generator):
+        return generator.bit_generator.state
+    return generator.getstate() if isinstance(generator, random.Random) else generator.get_state(legacy=False)
 
 
 def same_state(a, b) -> bool:
@@ -270,7 +294,8 @@ def per_seed(fn):
     """fn (a function or a network), written for one seed, run for every seed: its tensor arguments (and NamedTuples
     of them) carry a leading seeds dimension, its networks come from stack_seeds, what it returns gains that dimension.
     With several seeds, what vmap cannot run per seed stops with one line: a value read into Python, and (on the
-    first WATCHED_CALLS calls) a draw from Python's or NumPy's generator, which would be one draw all seeds share."""
+    first WATCHED_CALLS calls) a draw from Python's or NumPy's generator, or from one of the fork's own that fn reaches,
+    which would be one draw all seeds share."""
 
     @functools.wraps(fn)
     def run(*args):
@@ -295,7 +320,11 @@ def per_seed(fn):
 
         code = code_of(fn)
         watched_calls[code] = calls = watched_calls.get(code, 0) + 1
-        before = python_draws() if calls <= WATCHED_CALLS else None
+        if calls <= WATCHED_CALLS:
+            own = own_generators(fn)
+            before = python_draws(), [generator_state(g) for _, g in own]
+        else:
+            before = None
         inside_per_seed[0] += 1
         try:
             out = vmap(one_seed, in_dims=(0, *in_dims), randomness="different")(state, *args)
@@ -306,13 +335,21 @@ def per_seed(fn):
             raise
         finally:
             inside_per_seed[0] -= 1
-        if before is not None and not same_state(before, python_draws()):
-            raise refusal(
-                RuntimeError,
-                f"per_seed({name_of(fn)}) with {n} seeds drew from Python's or NumPy's random generator (random, "
-                "np.random), which a vmap over the seeds runs once, for all of them: one draw the seeds would share; draw "
-                "with torch (torch.randn_like(x), torch.rand(shape), ...), which gives each seed its own",
-            )
+        if before is not None:
+            moved = [
+                f"`{label}`, a generator of its own"
+                for (label, g), was in zip(own, before[1])
+                if not same_state(was, generator_state(g))
+            ]
+            if not same_state(before[0], python_draws()):
+                moved.insert(0, "random, np.random")
+            if moved:
+                raise refusal(
+                    RuntimeError,
+                    f"per_seed({name_of(fn)}) with {n} seeds drew from Python's or NumPy's random generator ({moved[0]}), "
+                    "which a vmap over the seeds runs once, for all of them: one draw the seeds would share; draw with "
+                    "torch (torch.randn_like(x), torch.rand(shape), ...), which gives each seed its own",
+                )
         return out
 
     return run

@@ -505,6 +505,43 @@ def test_what_a_vmap_cannot_run_per_seed_runs_for_one_seed_and_stops_in_one_line
         assert "cannot read a tensor's value into Python" in message
 
 
+NUMPY_GENERATOR = np.random.default_rng(0)
+
+
+def noised_with_a_global_generator(x, net):
+    return net(x).mean() + float(NUMPY_GENERATOR.normal())  # a module's own NumPy Generator
+
+
+def noised_with(generator):
+    def noised(x, net):
+        return net(x).mean() + float(generator.random())  # a generator the function closes over
+
+    return noised
+
+
+@pytest.mark.parametrize(
+    "fn, name",
+    [
+        (noised_with_a_global_generator, "NUMPY_GENERATOR"),
+        (noised_with(np.random.RandomState(1)), "generator"),
+        (functools.partial(noised_with(random.Random(2))), "generator"),
+    ],
+    ids=["global Generator", "closed-over RandomState", "partial over a random.Random"],
+)
+def test_a_generator_of_a_forks_own_in_a_per_seed_function_runs_for_one_seed_and_stops_for_several(fn, name):
+    """A per-seed function drawing from a generator of the fork's own (np.random.default_rng(), RandomState,
+    random.Random), named as a global, closed over, or behind a partial: its own draw with one seed; with several,
+    one draw every seed would share: it stops in one line naming the generator."""
+    assert per_seed(fn)(torch.randn(1, 8, 3), built([4])).shape == (1,)
+    with pytest.raises(RuntimeError) as refused:
+        per_seed(fn)(torch.randn(3, 8, 3), built([4, 5, 6]))
+    message = str(refused.value)
+    assert "\n" not in message and message.startswith(
+        f"per_seed({seeds_module.name_of(fn)}) with 3 seeds drew from Python's or NumPy's random generator "
+        f"(`{name}`, a generator of its own), which a vmap over the seeds runs once"
+    ), message
+
+
 def test_torch_draws_in_a_per_seed_function_are_each_seeds_own_and_pass_the_watch():
     def noised(x, net):
         return net(x).squeeze(-1) + torch.randn_like(x[..., 0]) + torch.rand(x.shape[:-1]) + torch.randperm(8)
