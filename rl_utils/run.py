@@ -78,6 +78,7 @@ class Run:
                 kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
                 fail(f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there")
         self.check_state_held()
+        self.check_one_learning_rate_follows_one_seed()
         observations = None
         if self.checkpoints:
             observations = ckpt.restore(join_seeds(self.checkpoints, parts), self.env_list, nets, optimizers, parts)
@@ -95,6 +96,19 @@ class Run:
 
     def log_episodes(self, infos, step: int):
         self.logs.log_episodes(infos, step)
+
+    def check_one_learning_rate_follows_one_seed(self):
+        """With several seeds, one optimizer steps every seed's weights, at one learning rate: a schedule of the step
+        count is each seed's own, but a ReduceLROnPlateau follows one number, one seed's loss or all of theirs."""
+        if len(self.seeds) == 1:
+            return
+        for name, x in [*self.caller.f_locals.items(), *self.parts.items()]:
+            if isinstance(x, lr_scheduler.ReduceLROnPlateau):
+                fail(
+                    f"`{name}` (ReduceLROnPlateau) follows one number, and its optimizer steps every seed's weights: with "
+                    f"{len(self.seeds)} seeds it would set one learning rate for all of them; train one seed a process "
+                    "(--num-seeds 1)"
+                )
 
     def check_state_held(self):
         """Every object main holds that has a state (a state_dict() and a load_state_dict(): a learning-rate

@@ -721,6 +721,19 @@ def test_a_learning_rate_scheduler_the_checkpoints_would_not_hold_is_refused_at_
     assert "--resume would start it again" in line and "q_scheduler=q_scheduler" in line
 
 
+def test_a_learning_rate_that_follows_a_loss_is_refused_at_the_start_with_several_seeds(tmp_path):
+    """ReduceLROnPlateau follows one number; one optimizer steps every seed's weights. With two seeds it would set one
+    learning rate for both, following one seed's loss or their sum: refused before the first step (with one seed the
+    schedule runs, above)."""
+    fork = functools.partial(with_scheduler, scheduler=SCHEDULERS["ReduceLROnPlateau"], given=True)
+    result = run_fork(tmp_path, fork, 2)
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines()[-1] == (
+        "error: `q_scheduler` (ReduceLROnPlateau) follows one number, and its optimizer steps every seed's weights: "
+        "with 2 seeds it would set one learning rate for all of them; train one seed a process (--num-seeds 1)"
+    )
+
+
 def test_a_scheduler_found_by_the_optimizer_step_it_wraps_and_one_made_of_others():
     """A scheduler main does not hold by name (made in a helper) is found by the optimizer step it wraps; one made
     of others (SequentialLR) holds theirs, which are not refused beside it."""
