@@ -18,21 +18,23 @@ class Batch(NamedTuple):
 
 
 def check_what_is_stored(next_obs, terminations):
-    """The two CleanRL-era slips: storing the next_obs `SeedEnvs.step` returned, whose rows where an episode ended are
-    the next episode's first observation (found by value, in any array, against the latest step's record), and storing
-    `terminations | truncations` as terminations, which stops the target bootstrapping where a time limit cut an
-    episode, every DeepMind Control episode (found by the `truncated` mark on the next_obs arrays step returned and
-    their copies, rl_utils.envs.StepObservations)."""
+    """The two CleanRL-era slips. Storing the next_obs `SeedEnvs.step` returned, whose rows where an episode ended are
+    the next episode's first observation: refused where such a row is stored as not terminated (its target would
+    bootstrap from it), found by value in any array against the latest step's record. And storing `terminations |
+    truncations` as terminations, which stops the target bootstrapping where a time limit cut an episode (every
+    DeepMind Control episode): found by the `truncated` mark on the arrays step returned and their copies
+    (rl_utils.envs.StepObservations)."""
     ends = env_layer.latest_episode_ends
     if ends is not None and np.shape(next_obs) == ends.shape:
-        stored = np.asarray(next_obs)
+        stored, ended = np.asarray(next_obs), np.asarray(terminations)
         for row, first, real in zip(ends.rows, ends.first_observations, ends.real_next_observations):
-            if np.array_equal(stored[row], first) and not np.array_equal(first, real):
+            if ended[row] == 0 and np.array_equal(stored[row], first) and not np.array_equal(first, real):
                 raise refusal(
                     ValueError,
-                    f"ReplayBuffer.add: next_obs is the one envs.step returned, whose row for seed index {row} is the next "
-                    "episode's first observation (its episode ended at this step): store the observation the step led "
-                    'to, infos["real_next_obs"]',
+                    f"ReplayBuffer.add: next_obs's row for seed index {row} is the next episode's first observation "
+                    "(envs.step's next_obs, or a copy of it), where the episode ended at this step, stored as not "
+                    "terminated: its target would bootstrap from it; store the observation the step led to, "
+                    'infos["real_next_obs"]',
                 )
     cut = getattr(next_obs, "truncated", None)
     if cut is not None and (stopped := cut & (np.asarray(terminations) != 0)).any():
@@ -40,7 +42,8 @@ def check_what_is_stored(next_obs, terminations):
             ValueError,
             f"ReplayBuffer.add: terminations is 1 for seed index {int(stopped.argmax())}, whose episode its time limit "
             "cut (truncated, not terminated): its target must bootstrap from the next observation; store the "
-            "terminations envs.step returned, not terminations | truncations",
+            "terminations envs.step returned, not terminations | truncations (a fork that means a time limit to end "
+            'its episodes stores np.asarray(infos["real_next_obs"]), without the mark)',
         )
 
 

@@ -61,8 +61,8 @@ EVALUATE_HINT = "a policy maps observations [num_envs, obs_dim] to actions [num_
 class StepObservations(np.ndarray):
     """Observations [num_seeds, obs_dim] as `SeedEnvs.step` returns them, next_obs and infos["real_next_obs"], marked
     with `truncated` (the rows whose episode its time limit cut, not ended: they bootstrap) for `ReplayBuffer.add`'s
-    check of terminations. A copy of the same shape keeps the mark (`next_obs.copy()`, `.astype`); `np.asarray` and
-    `np.array` give a plain array without it."""
+    check of terminations. An array of the same shape made from it keeps the mark (`next_obs.copy()`, `.astype`, but
+    also `np.zeros_like`); `np.asarray`, `np.array` and what NumPy computes from it give plain arrays without it."""
 
     truncated = None
 
@@ -89,8 +89,9 @@ def marked(observations: np.ndarray, truncated: np.ndarray) -> StepObservations:
 
 class EpisodeEnds(NamedTuple):
     """Where the latest `SeedEnvs.step` ended episodes: the shape of its next_obs, the seed indices, the next episode's
-    first observations it returned for them in next_obs, and the observations the step led to. `ReplayBuffer.add` refuses a next_obs whose
-    rows are the former, whatever array holds them (the one returned, or a copy)."""
+    first observations it returned for them in next_obs, and the observations the step led to. `ReplayBuffer.add`
+    refuses a next_obs whose rows are the former, whatever array holds them (the one returned, or a copy), where they
+    are stored as not terminated."""
 
     shape: tuple
     rows: np.ndarray
@@ -146,9 +147,10 @@ class SeedEnvs:
         real_next_obs = marked(np.stack(next_obs), cut)
         next_obs = [env.reset()[0] if done else obs for env, obs, done in zip(self.envs, next_obs, ended)]
         next_obs = marked(np.stack(next_obs), cut)
-        rows = np.flatnonzero(ended)
-        ends = EpisodeEnds(next_obs.shape, rows, np.array(next_obs[rows]), np.array(real_next_obs[rows]))
-        latest_episode_ends = ends if rows.size else None
+        latest_episode_ends = None
+        if ended.any():
+            rows = np.flatnonzero(ended)
+            latest_episode_ends = EpisodeEnds(next_obs.shape, rows, np.array(next_obs[rows]), np.array(real_next_obs[rows]))
         episodes = [info.get("episode") if done else None for info, done in zip(infos, ended)]
         infos = {"real_next_obs": real_next_obs, "episode": episodes}
         return next_obs, np.array(rewards), terminations, truncations, infos
@@ -165,10 +167,11 @@ class SeedEnvs:
         if self.draws is not None and not same_state(self.draws, draws):
             raise refusal(
                 RuntimeError,
-                f"SeedEnvs.step with {len(self.envs)} seeds: Python's or NumPy's global random generator drew in the loop "
-                "(np.random.normal(0, s, size=envs.action_space.shape)?): with several seeds it is one stream for all of "
-                "them, and a draw of one seed's shape gives every seed the same numbers; draw with torch inside a "
-                "per-seed function, as noisy_action does (per_seed(noisy_action)(obs, actor, ...))",
+                f"SeedEnvs.step with {len(self.envs)} seeds: Python's or NumPy's global random generator drew in the "
+                f"last {DRAWS_EVERY} steps (in the loop, or code it calls): with several seeds it is the process's stream, "
+                "not any seed's, and a draw of one seed's shape (np.random.normal(0, s, size=envs.action_space.shape)) "
+                "gives every seed the same numbers; draw with torch inside a per-seed function, as noisy_action does "
+                "(per_seed(noisy_action)(obs, actor, ...))",
             )
         self.draws = draws
 

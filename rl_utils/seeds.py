@@ -186,19 +186,45 @@ def python_draws() -> tuple:
 GENERATORS = (np.random.Generator, np.random.RandomState, random.Random)
 
 
-def own_generators(fn) -> list:
+def own_generators(fn, networks: nn.Module) -> list:
     """The random generators of a fork's own that fn reaches, [(name, generator)]: a NumPy Generator or RandomState
-    or a random.Random in its closure, the globals it names, or its helpers' (rl_utils.gpu.probes)."""
+    or a random.Random (not SystemRandom, which has no state), itself or a method of it (rng.normal), in fn's
+    closure, the globals it names or its helpers' (rl_utils.gpu.probes), in a list or dict there, among the
+    attributes of an object of the script's own classes there (an OU noise's self.rng), or of the networks'."""
     from rl_utils.gpu import probes
 
     found = {}
+
+    def look(label, x, depth=0):
+        x = x.__self__ if isinstance(getattr(x, "__self__", None), GENERATORS) else x  # a method: rng.normal
+        if isinstance(x, GENERATORS):
+            if not isinstance(x, random.SystemRandom):
+                found.setdefault(id(x), (label, x))
+            return
+        if depth == 2:
+            return
+        if isinstance(x, (list, tuple)):
+            for i, v in enumerate(x):
+                look(f"{label}[{i}]", v, depth + 1)
+        elif isinstance(x, dict):
+            for k, v in x.items():
+                look(f"{label}[{k!r}]", v, depth + 1)
+        elif type(x).__module__ == module and hasattr(x, "__dict__") and not isinstance(x, type):
+            for k, v in vars(x).items():
+                look(f"{label}.{k}", v, depth + 1)
+
+    top = fn.func if isinstance(fn, functools.partial) else fn
+    module = getattr(top, "__module__", None)
     for label, read in probes(fn):
         try:
             x = read()
         except (ValueError, KeyError, AttributeError, IndexError):  # an unfilled cell
             continue
-        if isinstance(x, GENERATORS) and id(x) not in found:
-            found[id(x)] = (label, x)
+        look(label, x)
+    for network in networks.networks:
+        for name, layer in network.named_modules():
+            for k, v in vars(layer).items():
+                look(".".join([type(network).__name__, *([name] if name else []), k]), v, 2)
     return list(found.values())
 
 
@@ -321,7 +347,7 @@ def per_seed(fn):
         code = code_of(fn)
         watched_calls[code] = calls = watched_calls.get(code, 0) + 1
         if calls <= WATCHED_CALLS:
-            own = own_generators(fn)
+            own = own_generators(fn, networks)
             before = python_draws(), [generator_state(g) for _, g in own]
         else:
             before = None
@@ -337,16 +363,16 @@ def per_seed(fn):
             inside_per_seed[0] -= 1
         if before is not None:
             moved = [
-                f"`{label}`, a generator of its own"
+                f"`{label}`, a random generator of its own"
                 for (label, g), was in zip(own, before[1])
                 if not same_state(was, generator_state(g))
             ]
             if not same_state(before[0], python_draws()):
-                moved.insert(0, "random, np.random")
+                moved.insert(0, "Python's or NumPy's random generator (random, np.random)")
             if moved:
                 raise refusal(
                     RuntimeError,
-                    f"per_seed({name_of(fn)}) with {n} seeds drew from Python's or NumPy's random generator ({moved[0]}), "
+                    f"per_seed({name_of(fn)}) with {n} seeds drew from {moved[0]}, "
                     "which a vmap over the seeds runs once, for all of them: one draw the seeds would share; draw with "
                     "torch (torch.randn_like(x), torch.rand(shape), ...), which gives each seed its own",
                 )

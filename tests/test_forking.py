@@ -385,8 +385,9 @@ def test_exploration_noise_drawn_from_numpy_in_the_loop_is_refused_with_several_
     assert result.returncode == 1
     last = result.stderr.strip().splitlines()[-1]
     assert last.startswith(
-        "error: SeedEnvs.step with 2 seeds: Python's or NumPy's global random generator drew in the loop "
-        "(np.random.normal(0, s, size=envs.action_space.shape)?): with several seeds it is one stream for all of them"
+        "error: SeedEnvs.step with 2 seeds: Python's or NumPy's global random generator drew in the last 100 steps (in "
+        "the loop, or code it calls): with several seeds it is the process's stream, not any seed's, and a draw of one "
+        "seed's shape (np.random.normal(0, s, size=envs.action_space.shape)) gives every seed the same numbers"
     ), last
     assert "draw with torch inside a per-seed function, as noisy_action does" in last
 
@@ -506,10 +507,15 @@ def test_what_a_vmap_cannot_run_per_seed_runs_for_one_seed_and_stops_in_one_line
 
 
 NUMPY_GENERATOR = np.random.default_rng(0)
+DRAW = np.random.default_rng(1).normal  # a method of a generator
 
 
 def noised_with_a_global_generator(x, net):
     return net(x).mean() + float(NUMPY_GENERATOR.normal())  # a module's own NumPy Generator
+
+
+def noised_with_a_generators_method(x, net):
+    return net(x).mean() + float(DRAW())
 
 
 def noised_with(generator):
@@ -519,27 +525,71 @@ def noised_with(generator):
     return noised
 
 
+class OUNoise:  # a helper object of the fork's own, holding its generator
+    def __init__(self):
+        self.rng, self.state = np.random.default_rng(3), 0.0
+
+    def sample(self):
+        self.state = 0.85 * self.state + 0.2 * self.rng.normal()
+        return self.state
+
+
+def noised_by(noises):
+    def noised(x, net):
+        return net(x).mean() + float(noises[0].sample())  # an OU noise in a list
+
+    return noised
+
+
+class NoisyLinear(nn.Linear):  # a network holding its generator
+    def __init__(self, *shape):
+        super().__init__(*shape)
+        self.rng = random.Random(4)
+
+    def forward(self, x):
+        return super().forward(x) * self.rng.uniform(0.9, 1.1)
+
+
 @pytest.mark.parametrize(
     "fn, name",
     [
         (noised_with_a_global_generator, "NUMPY_GENERATOR"),
+        (noised_with_a_generators_method, "DRAW"),
         (noised_with(np.random.RandomState(1)), "generator"),
         (functools.partial(noised_with(random.Random(2))), "generator"),
+        (noised_by([OUNoise()]), "noises[0].rng"),
+        (None, "NoisyLinear.rng"),
     ],
-    ids=["global Generator", "closed-over RandomState", "partial over a random.Random"],
+    ids=[
+        "global Generator",
+        "a Generator's method",
+        "closed-over RandomState",
+        "partial over a random.Random",
+        "an OU noise's generator",
+        "a network's generator",
+    ],
 )
 def test_a_generator_of_a_forks_own_in_a_per_seed_function_runs_for_one_seed_and_stops_for_several(fn, name):
     """A per-seed function drawing from a generator of the fork's own (np.random.default_rng(), RandomState,
-    random.Random), named as a global, closed over, or behind a partial: its own draw with one seed; with several,
-    one draw every seed would share: it stops in one line naming the generator."""
-    assert per_seed(fn)(torch.randn(1, 8, 3), built([4])).shape == (1,)
+    random.Random): named as a global, closed over, behind a partial, as a method, held by an object of the fork's
+    own in a list, or by a network. With one seed it is that seed's own draw; with several, one draw every seed would
+    share: it stops in one line naming the generator. A SystemRandom, which has no state to watch, is passed over."""
+    if fn is None:
+        one, three = NoisyLinear(3, 1), stack_seeds(lambda: [NoisyLinear(3, 1)], [1, 2, 3], torch.device("cpu"))[0]
+        assert per_seed(one)(torch.randn(1, 8, 3)).shape == (1, 8, 1)
+        call = lambda: per_seed(three)(torch.randn(3, 8, 3))  # noqa: E731
+    else:
+        assert per_seed(fn)(torch.randn(1, 8, 3), built([4])).shape == (1,)
+        call = lambda: per_seed(fn)(torch.randn(3, 8, 3), built([4, 5, 6]))  # noqa: E731
     with pytest.raises(RuntimeError) as refused:
-        per_seed(fn)(torch.randn(3, 8, 3), built([4, 5, 6]))
+        call()
     message = str(refused.value)
     assert "\n" not in message and message.startswith(
-        f"per_seed({seeds_module.name_of(fn)}) with 3 seeds drew from Python's or NumPy's random generator "
-        f"(`{name}`, a generator of its own), which a vmap over the seeds runs once"
+        f"per_seed({seeds_module.name_of(fn if fn else three)}) with 3 seeds drew from `{name}`, a random generator of "
+        "its own, which a vmap over the seeds runs once"
     ), message
+    entropy = random.SystemRandom()
+    assert per_seed(lambda x, net: net(x).mean() * (entropy is not None))(torch.randn(3, 8, 3), built([4, 5, 6])).shape == (3,)
 
 
 def test_torch_draws_in_a_per_seed_function_are_each_seeds_own_and_pass_the_watch():
@@ -792,15 +842,16 @@ def test_a_scheduler_given_to_run_start_resumes_where_its_schedule_was(tmp_path)
     [
         (
             "rb.add(obs, next_obs, actions, rewards, terminations)",
-            "ReplayBuffer.add: next_obs is the one envs.step returned, whose row for seed index 0 is the next episode's "
-            "first observation (its episode ended at this step): store the observation the step led to, "
-            'infos["real_next_obs"]',
+            "ReplayBuffer.add: next_obs's row for seed index 0 is the next episode's first observation (envs.step's "
+            "next_obs, or a copy of it), where the episode ended at this step, stored as not terminated: its target "
+            'would bootstrap from it; store the observation the step led to, infos["real_next_obs"]',
         ),
         (
             'rb.add(obs, infos["real_next_obs"], actions, rewards, np.logical_or(terminations, truncations))',
             "ReplayBuffer.add: terminations is 1 for seed index 0, whose episode its time limit cut (truncated, not "
             "terminated): its target must bootstrap from the next observation; store the terminations envs.step "
-            "returned, not terminations | truncations",
+            "returned, not terminations | truncations (a fork that means a time limit to end its episodes stores "
+            'np.asarray(infos["real_next_obs"]), without the mark)',
         ),
         (
             "real_next_obs = next_obs.copy()\n"
@@ -810,7 +861,8 @@ def test_a_scheduler_given_to_run_start_resumes_where_its_schedule_was(tmp_path)
             "rb.add(obs, real_next_obs, actions, rewards, terminations | truncations)",
             "ReplayBuffer.add: terminations is 1 for seed index 0, whose episode its time limit cut (truncated, not "
             "terminated): its target must bootstrap from the next observation; store the terminations envs.step "
-            "returned, not terminations | truncations",
+            "returned, not terminations | truncations (a fork that means a time limit to end its episodes stores "
+            'np.asarray(infos["real_next_obs"]), without the mark)',
         ),
     ],
     ids=["next_obs", "dones", "fixed-up copy and dones"],
@@ -860,7 +912,7 @@ def test_what_is_stored_is_checked_in_copies_of_what_envs_step_returns():
             rb.add(obs, fixed, envs.sample_actions(), rewards, terminations)
             assert torch.equal(rb.storage[:, step, -envs.obs_dim - 2 : -2], torch.from_numpy(np.asarray(real, np.float32)))
             for stored in (next_obs, next_obs.copy(), np.array(next_obs), next_obs.astype(np.float64), next_obs.tolist()):
-                with pytest.raises(ValueError, match="^ReplayBuffer.add: next_obs is the one envs.step returned"):
+                with pytest.raises(ValueError, match="^ReplayBuffer.add: next_obs's row for seed index 0 is the next "):
                     rb.add(obs, stored, envs.sample_actions(), rewards, terminations)
             for stored in (real, fixed, real.copy()):
                 with pytest.raises(ValueError, match="^ReplayBuffer.add: terminations is 1 for seed index 0, whose episode"):
@@ -877,9 +929,11 @@ def test_what_is_stored_is_checked_in_copies_of_what_envs_step_returns():
     envs.close()
 
 
-def test_a_fork_storing_the_reset_observation_is_refused_where_one_seeds_episode_ends_alone():
-    """Hopper-v4, seeds 1 and 2, random actions: the second seed's hopper falls first, alone (step 12); the refusal
-    names its index, and where no episode ended the same rows are stored as they are."""
+def test_where_one_seeds_episode_ends_alone_a_termination_stores_any_next_obs_and_a_time_limit_is_named():
+    """Hopper-v4, seeds 1 and 2, random actions: the second seed's hopper falls first, alone (step 12). A terminated
+    row's target reads no next observation: the next_obs envs.step returned, and CleanRL's fix-up (a copy, the rows a
+    time limit cut put back), are stored; stored as not terminated, that row is refused, by its index. Pendulum with
+    the first seed's episode begun a step late: the second seed's time limit comes alone, and is named."""
     envs, obs, rb = two_seed_envs_and_buffer("Hopper-v4", 100)
     for step in range(100):
         next_obs, rewards, terminations, truncations, infos = envs.step(envs.sample_actions())
@@ -888,12 +942,27 @@ def test_a_fork_storing_the_reset_observation_is_refused_where_one_seeds_episode
         rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)
         obs = next_obs
     assert terminations.tolist() == [False, True] and not truncations.any(), (step, terminations)
-    with pytest.raises(
-        ValueError, match="^ReplayBuffer.add: next_obs is the one envs.step returned, whose row for seed index 1"
-    ):
+    fixed = next_obs.copy()
+    for idx, trunc in enumerate(truncations):
+        if trunc:
+            fixed[idx] = infos["real_next_obs"][idx]
+    for stored in (next_obs, fixed, infos["real_next_obs"]):
+        rb.add(obs, stored, envs.sample_actions(), rewards, terminations)
+    with pytest.raises(ValueError, match="^ReplayBuffer.add: next_obs's row for seed index 1 is the next episode's first"):
+        rb.add(obs, next_obs, envs.sample_actions(), rewards, np.zeros(2))
+    assert rb.size == step + 3
+    envs.close()
+    envs, obs, rb = two_seed_envs_and_buffer("Pendulum-v1", 300)
+    envs.step(envs.sample_actions())
+    envs.envs[0].reset(seed=1)  # the first seed's episode begins again, a step after the second's
+    for step in range(199):
+        next_obs, rewards, terminations, truncations, infos = envs.step(envs.sample_actions())
+    assert truncations.tolist() == [False, True]
+    with pytest.raises(ValueError, match="^ReplayBuffer.add: next_obs's row for seed index 1 is the next episode's first"):
         rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)
-    rb.add(obs, infos["real_next_obs"], envs.sample_actions(), rewards, terminations)  # a termination: stored
-    assert rb.size == step + 1
+    with pytest.raises(ValueError, match="^ReplayBuffer.add: terminations is 1 for seed index 1, whose episode its time"):
+        rb.add(obs, infos["real_next_obs"], envs.sample_actions(), rewards, terminations | truncations)
+    rb.add(obs, infos["real_next_obs"], envs.sample_actions(), rewards, terminations)
     envs.close()
 
 
