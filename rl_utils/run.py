@@ -106,7 +106,7 @@ class Run:
             if isinstance(x, lr_scheduler.ReduceLROnPlateau):
                 fail(
                     f"`{name}` (ReduceLROnPlateau) follows one number, and its optimizer steps every seed's weights: with "
-                    f"{len(self.seeds)} seeds it would set one learning rate for all of them; train one seed a process "
+                    f"{len(self.seeds)} seeds it would set one learning rate for all of them; train one seed per process "
                     "(--num-seeds 1)"
                 )
 

@@ -780,7 +780,7 @@ def test_a_learning_rate_that_follows_a_loss_is_refused_at_the_start_with_severa
     assert result.returncode == 1
     assert result.stderr.strip().splitlines()[-1] == (
         "error: `q_scheduler` (ReduceLROnPlateau) follows one number, and its optimizer steps every seed's weights: "
-        "with 2 seeds it would set one learning rate for all of them; train one seed a process (--num-seeds 1)"
+        "with 2 seeds it would set one learning rate for all of them; train one seed per process (--num-seeds 1)"
     )
 
 
