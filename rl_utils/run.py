@@ -77,8 +77,8 @@ class Run:
             if isinstance(x, (torch.nn.Module, torch.optim.Optimizer)) and id(x) not in watched:
                 kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
                 fail(f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there")
+        self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
         self.check_state_held()
-        self.check_one_learning_rate_follows_one_seed()
         observations = None
         if self.checkpoints:
             observations = ckpt.restore(join_seeds(self.checkpoints, parts), self.env_list, nets, optimizers, parts)
