@@ -24,9 +24,10 @@ def check_what_is_stored(next_obs, terminations):
     truncations` as terminations, which stops the target bootstrapping where a time limit cut an episode (every
     DeepMind Control episode): found by the `truncated` mark on the arrays step returned and their copies
     (rl_utils.envs.StepObservations)."""
+    ended = np.asarray(terminations)
     ends = env_layer.latest_episode_ends
     if ends is not None and np.shape(next_obs) == ends.shape:
-        stored, ended = np.asarray(next_obs), np.asarray(terminations)
+        stored = np.asarray(next_obs)
         for row, first, real in zip(ends.rows, ends.first_observations, ends.real_next_observations):
             if ended[row] == 0 and np.array_equal(stored[row], first) and not np.array_equal(first, real):
                 raise refusal(
@@ -37,7 +38,7 @@ def check_what_is_stored(next_obs, terminations):
                     'infos["real_next_obs"]',
                 )
     cut = getattr(next_obs, "truncated", None)
-    if cut is not None and (stopped := cut & (np.asarray(terminations) != 0)).any():
+    if cut is not None and (stopped := cut & (ended != 0)).any():
         raise refusal(
             ValueError,
             f"ReplayBuffer.add: terminations is 1 for seed index {int(stopped.argmax())}, whose episode its time limit "

@@ -75,10 +75,15 @@ def probes(fn) -> list:
             if name in f.__globals__ and not isinstance(f.__globals__[name], (types.ModuleType, type)):
                 value(name, lambda g=f.__globals__, k=name: g[k], depth)
 
-    top = fn.func if isinstance(fn, functools.partial) else fn  # the module whose functions are followed: fn's own
-    module = getattr(inspect.unwrap(top) if isinstance(top, types.FunctionType) else top, "__module__", None)
+    module = module_of(fn)
     function(getattr(fn, "__name__", "fn"), fn, 0)
     return found
+
+
+def module_of(fn):
+    """The module whose functions `probes` follows: fn's own (a partial's function's, a wrapped function's)."""
+    top = fn.func if isinstance(fn, functools.partial) else fn
+    return getattr(inspect.unwrap(top) if isinstance(top, types.FunctionType) else top, "__module__", None)
 
 
 def is_plain(x) -> bool:

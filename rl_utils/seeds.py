@@ -191,7 +191,7 @@ def own_generators(fn, networks: nn.Module) -> list:
     or a random.Random (not SystemRandom, which has no state), itself or a method of it (rng.normal), in fn's
     closure, the globals it names or its helpers' (rl_utils.gpu.probes), in a list or dict there, among the
     attributes of an object of the script's own classes there (an OU noise's self.rng), or of the networks'."""
-    from rl_utils.gpu import probes
+    from rl_utils.gpu import module_of, probes
 
     found = {}
 
@@ -213,8 +213,7 @@ def own_generators(fn, networks: nn.Module) -> list:
             for k, v in vars(x).items():
                 look(f"{label}.{k}", v, depth + 1)
 
-    top = fn.func if isinstance(fn, functools.partial) else fn
-    module = getattr(top, "__module__", None)
+    module = module_of(fn)
     for label, read in probes(fn):
         try:
             x = read()

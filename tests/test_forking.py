@@ -887,6 +887,15 @@ def test_a_fork_storing_the_reset_observation_or_truncations_as_ends_stops_at_th
     assert re.fullmatch(re.escape(f"error: {refusal} (at fork_continuous_action.py:") + r"\d+\)", last), last
 
 
+def cleanrl_fix_up(next_obs, truncations, real_next_obs):
+    """CleanRL's own fix of an autoreset step: a copy of next_obs with the rows a time limit cut put back."""
+    fixed = next_obs.copy()
+    for idx, trunc in enumerate(truncations):
+        if trunc:
+            fixed[idx] = real_next_obs[idx]
+    return fixed
+
+
 def two_seed_envs_and_buffer(env_id, capacity):
     envs = SeedEnvs(env_id, [1, 2])
     return envs, envs.reset(), ReplayBuffer(capacity, envs.obs_dim, envs.action_dim, 2, torch.device("cpu"))
@@ -905,10 +914,7 @@ def test_what_is_stored_is_checked_in_copies_of_what_envs_step_returns():
         assert isinstance(next_obs, np.ndarray) and repr(next_obs).startswith("array(")
         if step == 199:
             assert not np.array_equal(next_obs, real)  # the next episode's first observations
-            fixed = next_obs.copy()
-            for idx, trunc in enumerate(truncations):
-                if trunc:
-                    fixed[idx] = real[idx]
+            fixed = cleanrl_fix_up(next_obs, truncations, real)
             rb.add(obs, fixed, envs.sample_actions(), rewards, terminations)
             assert torch.equal(rb.storage[:, step, -envs.obs_dim - 2 : -2], torch.from_numpy(np.asarray(real, np.float32)))
             for stored in (next_obs, next_obs.copy(), np.array(next_obs), next_obs.astype(np.float64), next_obs.tolist()):
@@ -942,10 +948,7 @@ def test_where_one_seeds_episode_ends_alone_a_termination_stores_any_next_obs_an
         rb.add(obs, next_obs, envs.sample_actions(), rewards, terminations)
         obs = next_obs
     assert terminations.tolist() == [False, True] and not truncations.any(), (step, terminations)
-    fixed = next_obs.copy()
-    for idx, trunc in enumerate(truncations):
-        if trunc:
-            fixed[idx] = infos["real_next_obs"][idx]
+    fixed = cleanrl_fix_up(next_obs, truncations, infos["real_next_obs"])
     for stored in (next_obs, fixed, infos["real_next_obs"]):
         rb.add(obs, stored, envs.sample_actions(), rewards, terminations)
     with pytest.raises(ValueError, match="^ReplayBuffer.add: next_obs's row for seed index 1 is the next episode's first"):
