@@ -147,6 +147,10 @@ run_one() {  # algo env seed|first-last total checkpoint_frequency [-- extra...]
   # results/mkl_kernels.csv; a resumed run appends a second line
   local kernels=mkl-default
   [[ ${LD_PRELOAD:-} == *libmkl_intel_cpu_true* ]] && kernels=mkl-avx512
+  if [[ -n ${GPU_SWEEP:-} ]]; then  # --gpu: the GPU's, recorded as CUDA graphs where the script takes --cudagraphs
+    kernels=cuda
+    grep -q '^ *cudagraphs: bool' "$REPO/${algo}_continuous_action.py" && kernels=cuda-cudagraphs
+  fi
   for name in "${names[@]}"; do
     echo "float32 kernels: $kernels" >>"logs/$name.log"
     if ((${#names[@]} > 1)); then echo "seeds per process: ${#names[@]} (output in $log)" >>"logs/$name.log"; fi
@@ -353,7 +357,13 @@ plan() {
   done
 }
 
-if ((gpu)); then  # the processes that run at once must fit the GPU's free memory
+if ((gpu)) && ! command -v nvidia-smi >/dev/null; then  # no GPU to check against: a preview only
+  if ((!dry_run)); then
+    echo "error: --gpu trains on this machine's CUDA GPU, and there is no nvidia-smi here (--dry-run previews the sweep)" >&2
+    exit 2
+  fi
+  echo "dry run: no nvidia-smi here, so the GPU memory check (tools/gpu_fit.py) is left to the real run" >&2
+elif ((gpu)); then  # the processes that run at once must fit the GPU's free memory
   plan | "$PYTHON" "$REPO/tools/gpu_fit.py" --workers "$workers" >&2 || exit 2
 fi
 if ((dry_run)); then

@@ -638,7 +638,11 @@ def main(argv=None):
         help="folders of TensorBoard runs (e.g. runs) and/or eval_series.csv files written by this script; a run found twice keeps its longer record (a warning if they differ)",
     )
     parser.add_argument("--out", default="results", help="output folder")
-    parser.add_argument("--prefix", default="", help="prefix of every output file name, e.g. ablation_")
+    parser.add_argument(
+        "--prefix",
+        default="",
+        help="prefix of the figures' and table.md's names, e.g. ablation_ (the CSVs, of every run read, keep theirs)",
+    )
     parser.add_argument("--algos", nargs="+", help="only these algorithms (names as in the table)")
     parser.add_argument("--env-ids", nargs="+", help="only these environments")
     parser.add_argument(

@@ -674,6 +674,39 @@ def test_gpu_sweep_that_would_not_fit_is_refused_in_one_line_before_it_starts(tm
     assert not os.path.exists(tmp_path / "runs") and not os.path.exists(tmp_path / "logs")
 
 
+def test_gpu_sweep_without_nvidia_smi_previews_in_a_dry_run_and_refuses_to_train(tmp_path):
+    """No nvidia-smi (a CPU machine): --dry-run prints the plan and says the memory check waits; a real run stops in
+    one line before anything starts."""
+    path = os.pathsep.join([os.path.dirname(sys.executable), "/usr/bin", "/bin"])
+    if shutil.which("nvidia-smi", path=path):
+        pytest.skip("nvidia-smi is installed in /usr/bin or /bin here")
+    preview = bench(*GPU_SWEEP, "--total-timesteps", "1000000", "--dry-run", cwd=tmp_path, env={"PATH": path})
+    assert preview.returncode == 0, preview.stderr
+    assert [p[:3] for p in planned(preview.stdout)] == [("td3", 1, 3), ("oparl", 1, 3)]
+    assert (
+        preview.stderr.strip()
+        == "dry run: no nvidia-smi here, so the GPU memory check (tools/gpu_fit.py) is left to the real run"
+    )
+    real = bench(*GPU_SWEEP, "--total-timesteps", "1000000", cwd=tmp_path, env={"PATH": path})
+    assert real.returncode == 2 and real.stdout == "" and real.stderr.strip().count("\n") == 0
+    assert real.stderr.startswith("error: --gpu trains on this machine's CUDA GPU, and there is no nvidia-smi here")
+    assert not os.path.exists(tmp_path / "runs") and not os.path.exists(tmp_path / "logs")
+
+
+@pytest.mark.slow
+def test_gpu_sweep_logs_the_gpu_as_the_runs_kernels(tmp_path):
+    """A --gpu run's log names the GPU's kernels (recorded as CUDA graphs where the script takes --cudagraphs), not
+    the CPU's (here, without CUDA, td3 then refuses --cudagraphs in one line, and PPO trains on the CPU)."""
+    result = bench(
+        "--gpu", "--algos", "td3", "ppo", "--env-ids", "Pendulum-v1", "--seeds", "1", "--total-timesteps", "300",
+        "--workers", "2", cwd=tmp_path, env=fake_gpu(tmp_path, 81000),
+    )  # fmt: skip
+    for algo, kernels in (("td3", "cuda-cudagraphs"), ("ppo", "cuda")):
+        log = open(tmp_path / "logs" / f"Pendulum-v1__{algo}__1__300.log").read()
+        assert log.startswith(f"float32 kernels: {kernels}\n"), log
+    assert not (tmp_path / "runs" / "Pendulum-v1__td3__1__300" / "DONE").exists(), result.stdout
+
+
 def test_gpu_fit_adds_each_process_context_buffers_and_networks(monkeypatch, capsys):
     """The arithmetic: a process is its CUDA context plus, per seed, its replay buffer (rows of 2 obs + action + 2
     floats) and its networks; the `--workers` largest run at once."""
