@@ -231,6 +231,7 @@ for algo in "${algos[@]}"; do
   [[ -f $REPO/${algo}_continuous_action.py ]] || die "unknown algorithm '$algo': no $REPO/${algo}_continuous_action.py"
 done
 for seed in "${seeds[@]}"; do [[ $seed =~ ^[0-9]+$ ]] || die "seeds must be non-negative integers, got '$seed'"; done
+((gpu && slurm)) && die "--gpu runs the sweep on this machine's GPU, not as a Slurm array (--slurm: ask for GPUs with --slurm-extra, and pass '-- --cudagraphs' to the scripts that take it)"
 if ((gpu)); then
   export GPU_SWEEP=1  # train_command adds --cudagraphs where a script takes it
   if ((!seeds_per_process_given)); then
