@@ -92,6 +92,9 @@ group_names() {  # array algo env seed|first-last total extra...
   for ((s = ${seed%-*}; s <= ${seed#*-}; s++)); do group_out+=("$(run_name "$algo" "$env" "$s" "$total" "$@")"); done
 }
 
+# Whether a script takes --cudagraphs (what --gpu adds where it can).
+takes_cudagraphs() { grep -q '^ *cudagraphs: bool' "$REPO/${1}_continuous_action.py"; }
+
 # The training command of one process (what run_one runs and --dry-run prints): its script, seed, steps, run name,
 # checkpoints and the flags passed on, resuming from its first run's checkpoint if it has one.
 train_command() {  # array algo env seed|first-last total checkpoint_frequency [--] extra...
@@ -108,7 +111,7 @@ train_command() {  # array algo env seed|first-last total checkpoint_frequency [
   fi
   [[ -f runs/${names[0]}/checkpoint.pt ]] && resume=(--resume "runs/${names[0]}")
   local gpu_flags=()  # --gpu: recorded updates, where the script takes them; a run's name is the same on a CPU
-  [[ -n ${GPU_SWEEP:-} ]] && grep -q '^ *cudagraphs: bool' "$REPO/${algo}_continuous_action.py" && gpu_flags=(--cudagraphs)
+  [[ -n ${GPU_SWEEP:-} ]] && takes_cudagraphs "$algo" && gpu_flags=(--cudagraphs)
   command_out=("${PYTHON:-python}" "$REPO/${algo}_continuous_action.py" --env-id "$env" --seed "${seed%-*}" "${seed_flags[@]}"
     "${steps[@]}" --run-name "$template" --checkpoint-frequency "$ckpt" "$@" "${gpu_flags[@]}" "${resume[@]}")
 }
@@ -149,7 +152,7 @@ run_one() {  # algo env seed|first-last total checkpoint_frequency [-- extra...]
   [[ ${LD_PRELOAD:-} == *libmkl_intel_cpu_true* ]] && kernels=mkl-avx512
   if [[ -n ${GPU_SWEEP:-} ]]; then  # --gpu: the GPU's, recorded as CUDA graphs where the script takes --cudagraphs
     kernels=cuda
-    grep -q '^ *cudagraphs: bool' "$REPO/${algo}_continuous_action.py" && kernels=cuda-cudagraphs
+    takes_cudagraphs "$algo" && kernels=cuda-cudagraphs
   fi
   for name in "${names[@]}"; do
     echo "float32 kernels: $kernels" >>"logs/$name.log"

@@ -676,12 +676,6 @@ def test_gpu_sweep_that_would_not_fit_is_refused_in_one_line_before_it_starts(tm
     assert not os.path.exists(tmp_path / "runs") and not os.path.exists(tmp_path / "logs")
 
 
-def torch_finds_cuda() -> bool:
-    import torch
-
-    return torch.cuda.is_available()
-
-
 def test_gpu_sweep_is_not_a_slurm_array(tmp_path):
     result = bench(*GPU_SWEEP, "--slurm", "--dry-run", cwd=tmp_path, env=fake_gpu(tmp_path, 81000))
     assert result.returncode == 2 and result.stdout == "" and result.stderr.strip().count("\n") == 0
@@ -711,7 +705,9 @@ def test_gpu_sweep_without_nvidia_smi_previews_in_a_dry_run_and_refuses_to_train
 def test_gpu_sweep_logs_the_gpu_as_the_runs_kernels(tmp_path):
     """A --gpu run's log names the GPU's kernels (recorded as CUDA graphs where the script takes --cudagraphs), not
     the CPU's (here, without CUDA, td3 then refuses --cudagraphs in one line, and PPO trains on the CPU)."""
-    if torch_finds_cuda():
+    import torch
+
+    if torch.cuda.is_available():
         pytest.skip("a CUDA GPU is here: td3 would train under --cudagraphs (test_cudagraphs.py covers that)")
     result = bench(
         "--gpu", "--algos", "td3", "ppo", "--env-ids", "Pendulum-v1", "--seeds", "1", "--total-timesteps", "300",
