@@ -7,7 +7,6 @@ from typing import NamedTuple, Optional
 
 import gymnasium as gym
 import numpy as np
-import torch
 
 from rl_utils.checkpoints import EpisodeRecord
 from rl_utils.errors import fail, refusal

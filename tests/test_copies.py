@@ -92,6 +92,15 @@ def test_repository_is_formatted_with_ruff():
     assert result.returncode == 0, f"run `ruff format .`:\n{result.stdout}{result.stderr}"
 
 
+@pytest.mark.skipif(importlib.util.find_spec("ruff") is None, reason="ruff is not installed (it is in requirements.txt)")
+def test_repository_passes_ruffs_lint():
+    """ruff.toml's rules: no unused import or variable, no undefined name (a typo in a branch no test runs)."""
+    result = subprocess.run(
+        [sys.executable, "-m", "ruff", "check", "--no-cache", "."], cwd=REPO, capture_output=True, text=True
+    )
+    assert result.returncode == 0, f"run `ruff check --fix .`, then fix what remains by hand:\n{result.stdout}{result.stderr}"
+
+
 def test_rl_utils_modules_import_each_other_without_a_cycle_and_name_no_commits():
     """Each rl_utils module has one job and imports only the modules below it: no cycle (a module that needs one
     above it has taken another's job). No code or message names a commit hash: a commit says nothing to a user."""

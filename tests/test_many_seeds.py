@@ -21,7 +21,7 @@ import torch.nn as nn
 
 from conftest import OFF_POLICY, QUICK, REPO, declared, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
 from rl_utils import SeedEnvs, evaluate, per_seed, stack_seeds
-from rl_utils.seeds import join_seeds, split_seeds
+from rl_utils.seeds import split_seeds
 from rl_utils import checkpoints as ckpt
 from rl_utils.cli import validate
 

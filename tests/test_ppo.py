@@ -4,7 +4,6 @@ EBD's copies too (their PPO part is PPO's; test_exploration.py tests what they a
 
 import math
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch
