@@ -478,6 +478,14 @@ def write_table(
         f"Final evaluation return (mean +- sample std over seeds, ddof 1; seeds per cell in parentheses) at "
         f"{' / '.join(map(str, budgets))} steps."
     ]
+    if len(budgets) > 1:  # an unfinished sweep, or a shorter arm: every comparison below sets unequal budgets side by side
+        short = sorted((e, a) for (a, e), s in steps.items() if s < budgets[-1])
+        lines.append(
+            "Runs of different lengths: "
+            + "; ".join(f"{a} on {e.removeprefix('dm_control/')} at {steps[(a, e)]}" for e, a in short)
+            + f", the others at {budgets[-1]}. The average row, OPARL's percentages, the aggregate metrics and P(X > Y) "
+            "compare them as if their budgets were equal."
+        )
     grouped = sorted((a, e) for (a, e), group in complete.items() if any(r.seeds_per_process > 1 for r in group))
     if grouped:
         lines.append(

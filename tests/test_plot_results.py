@@ -277,6 +277,22 @@ def test_cut_short_runs_are_named_and_left_out_of_the_table(tmp_path, capsys):
     assert "cut short before step 10000" in err and "seed 3 (at 5000)" in err
     table = open(os.path.join(out, "table.md")).read()
     assert "40.0 +- 14.1 (2)" in table  # the sample std of 30 and 50
+    assert "Runs of different lengths" not in table  # every run in the table reached 10000
+
+
+def test_a_table_of_runs_of_different_lengths_says_which_are_shorter(tmp_path):
+    """An unfinished sweep: each algorithm's runs at its furthest step, and a line naming the shorter ones, since every
+    comparison of the table then sets unequal budgets side by side."""
+    root = str(tmp_path / "runs")
+    for seed in (1, 2):
+        write_run(root, "td3_continuous_action", DMC_A, seed, [0, 10, 30])
+        write_run(root, "td3_continuous_action", DMC_B, seed, [0, 10, 30])
+        write_run(root, "oparl_continuous_action", DMC_B, seed, [0, 10, 30])
+    write_run(root, "oparl_continuous_action", DMC_A, 1, [0, 20])
+    plot([root, "--out", str(tmp_path / "out"), "--no-paper"])
+    lines = open(tmp_path / "out" / "table.md").read().splitlines()
+    assert lines[0].endswith("at 5000 / 10000 steps.")
+    assert lines[1].startswith("Runs of different lengths: oparl on cartpole-swingup-v0 at 5000, the others at 10000.")
 
 
 @pytest.mark.parametrize(
