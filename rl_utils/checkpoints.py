@@ -30,6 +30,28 @@ def set_rng_state(rng, state: dict):
         rng.bit_generator.state = state["generator"]
 
 
+# a random generator of a script's own (a fork's noise), which a checkpoint holds when given to run.start's parts
+GENERATORS = (np.random.Generator, np.random.RandomState, random.Random, torch.Generator)
+
+
+def generator_state(rng) -> dict:
+    """Its state, with no tensor directly under a key: a process's generator, kept whole in each seed's checkpoint."""
+    if isinstance(rng, torch.Generator):
+        return {"torch": (rng.get_state(),)}
+    if isinstance(rng, random.Random):
+        return {"python": rng.getstate()}
+    return rng_state(rng)
+
+
+def set_generator_state(rng, state: dict):
+    if "torch" in state:
+        rng.set_state(state["torch"][0])
+    elif "python" in state:
+        rng.setstate(state["python"])
+    else:
+        set_rng_state(rng, state)
+
+
 class EpisodeRecord(gym.Wrapper):
     """Remembers how the current episode began (the reset's seed, or the env's random state before the reset) and
     the actions taken since, so that a checkpoint taken mid-episode rebuilds the env exactly by replaying them."""
@@ -76,6 +98,9 @@ class EpisodeRecord(gym.Wrapper):
 
 
 CHECKPOINT = "checkpoint.pt"
+# the keys a checkpoint keeps its own state under (snapshot(), split_seeds()), which no part of run.start may take
+OWN_KEYS = ("script", "format", "args", "global_step", "nets", "optimizers", "rng", "envs", "run_names", "seed_index")
+OWN_KEYS += ("eval_returns", "seed_cut")
 # 3: critics as modules of nn.Linear layers (QNetwork); 2: critics as one hand-batched module; 1: every seed stacked
 # in each layer, before rl_utils. A checkpoint of another format resumes only with the scripts that wrote it.
 FORMAT = 3
@@ -83,7 +108,8 @@ FORMAT = 3
 
 def snapshot(script: str, args, envs, global_step: int, nets: dict, optimizers: dict, parts: dict) -> dict:
     """A process's state at `global_step`: its flags, networks, optimizers and random generators, each env's state,
-    and `parts`: objects with a state_dict() (the replay buffer), tensors (SAC's log_alpha) or plain values."""
+    and `parts`: objects with a state_dict() (the replay buffer), tensors (SAC's log_alpha), random generators of the
+    script's own or plain values."""
     return {
         "script": script,
         "format": FORMAT,
@@ -112,6 +138,8 @@ def snapshot(script: str, args, envs, global_step: int, nets: dict, optimizers: 
 def state_of(part):
     if isinstance(part, torch.Tensor):
         return part.detach().cpu().clone()
+    if isinstance(part, GENERATORS):
+        return generator_state(part)
     return part.state_dict() if hasattr(part, "state_dict") else part
 
 
@@ -129,6 +157,8 @@ def restore(checkpoint: dict, envs, nets: dict, optimizers: dict, parts: dict) -
         if isinstance(part, torch.Tensor):
             with torch.no_grad():
                 part.copy_(checkpoint[name])
+        elif isinstance(part, GENERATORS):
+            set_generator_state(part, checkpoint[name])
         elif hasattr(part, "load_state_dict"):
             part.load_state_dict(checkpoint[name])
     rng = checkpoint["rng"]

@@ -21,6 +21,11 @@ from rl_utils.numerics import NonFiniteError
 from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
 
 
+def part_name(name: str) -> str:
+    """A name run.start can take for a part main holds as `name` (not one of a checkpoint's own keys)."""
+    return f"my_{name}" if name in ckpt.OWN_KEYS else name
+
+
 class Run:
     """The machinery around a script's loop, in the order the loop meets it:
 
@@ -63,9 +68,16 @@ class Run:
 
     def start(self, envs, device: torch.device, nets: dict, optimizers: dict, **parts):
         """Names what a checkpoint holds (with the envs and the random generators): the networks, the optimizers and
-        `parts` (the replay buffer, tensors such as SAC's log_alpha, objects with a state_dict()); restores them on
-        --resume; opens the logs. Returns the observations a resumed run acts on next (for SeedEnvs [num_seeds,
-        obs_dim]; for one plain env, its observation or None where an episode starts), and None for a fresh run."""
+        `parts` (the replay buffer, tensors such as SAC's log_alpha, objects with a state_dict(), random generators of
+        the script's own); restores them on --resume; opens the logs. Returns the observations a resumed run acts on
+        next (for SeedEnvs [num_seeds, obs_dim]; for one plain env, its observation or None where an episode starts),
+        and None for a fresh run."""
+        for name in parts:
+            if name in ckpt.OWN_KEYS:
+                fail(
+                    f"run.start's part `{name}`: a checkpoint keeps its own `{name}` under that name, which would replace "
+                    f"it; give the part another name (run.start(..., my_{name}=...))"
+                )
         self.envs, self.nets, self.optimizers, self.parts = envs, nets, optimizers, parts
         self.env_list = list(envs) if isinstance(envs, SeedEnvs) else [envs]
         # the names main binds these networks and optimizers to, which end_step watches; one it holds but did not
@@ -112,8 +124,8 @@ class Run:
 
     def check_state_held(self):
         """Every object main holds that has a state (a state_dict() and a load_state_dict(): a learning-rate
-        scheduler, a running normaliser, a GradScaler) is checkpointed, among run.start's parts: else a resumed run would
-        start it from its initial state, silently. Found among main's names, and a learning-rate scheduler also by the
+        scheduler, a running normaliser, a GradScaler; a random generator of its own) is checkpointed, among
+        run.start's parts: else a resumed run would start it from its initial state, silently. Found among main's names, and a learning-rate scheduler also by the
         optimizer step it wraps (one made in a helper). Looked at where checkpoints are written."""
         if not self.args.checkpoint_frequency:
             return
@@ -127,13 +139,20 @@ class Run:
             if isinstance(x, (lr_scheduler.LRScheduler, lr_scheduler.ReduceLROnPlateau)):
                 fail(
                     f"`{name}`, a learning-rate scheduler, is not in run.start's parts: a checkpoint would not hold where "
-                    f"its schedule is, and --resume would start it again; add it there (run.start(..., {name}={name}))"
+                    "its schedule is, and --resume would start it again; add it there "
+                    f"(run.start(..., {part_name(name)}={name}))"
+                )
+            if isinstance(x, ckpt.GENERATORS):
+                fail(
+                    f"`{name}` ({type(x).__name__}), a random generator of the script's own, is not in run.start's parts: a "
+                    f"checkpoint would not hold it, and --resume would start it again; add it there (run.start(..., "
+                    f"{part_name(name)}={name})), or draw from torch's generator, which checkpoints hold"
                 )
             if callable(getattr(x, "state_dict", None)) and callable(getattr(x, "load_state_dict", None)):
                 fail(
                     f"`{name}` ({type(x).__name__}) has a state_dict() but is not in run.start's parts: a checkpoint would "
                     f"not hold it, and --resume would start it from its initial state; add it there "
-                    f"(run.start(..., {name}={name}))"
+                    f"(run.start(..., {part_name(name)}={name}))"
                 )
         for name, optimizer in self.optimizers.items():
             if hasattr(optimizer.step, "_wrapped_by_lr_sched") and id(optimizer) not in held_optimizers:

@@ -21,6 +21,7 @@ import td3_continuous_action as td3
 from conftest import OFF_POLICY, REPO, load, needs_cuda, parse, script_command, small_args
 from rl_utils import CudaGraph, SeedEnvs, parse_args, per_seed, stack_seeds
 from rl_utils.buffers import ReplayBuffer
+import rl_utils.checkpoints as ckpt
 import rl_utils.envs as env_layer
 import rl_utils.seeds as seeds_module
 from rl_utils.logs import Logs
@@ -1249,3 +1250,83 @@ def test_any_object_with_a_state_main_holds_but_does_not_checkpoint_is_refused_a
         "200",
     )
     assert given.returncode == 0, given.stderr
+
+
+GENERATOR_KINDS = {  # a generator of a fork's own, and three of its draws
+    "numpy Generator": (lambda: np.random.default_rng(5), lambda g: g.random(3).tolist()),
+    "numpy RandomState": (lambda: np.random.RandomState(5), lambda g: g.random_sample(3).tolist()),
+    "random.Random": (lambda: random.Random(5), lambda g: [g.random() for _ in range(3)]),
+    "torch.Generator": (lambda: torch.Generator().manual_seed(5), lambda g: torch.rand(3, generator=g).tolist()),
+}
+
+
+@pytest.mark.parametrize("kind", list(GENERATOR_KINDS))
+def test_a_generator_given_to_run_start_is_in_each_seeds_checkpoint_and_draws_on_after_a_restore(kind, tmp_path):
+    """A part that is a random generator of the script's own: each seed's checkpoint holds its whole state (a process's
+    generator, not cut), loadable with weights_only, and a restore sets it back to where the checkpoint was taken."""
+    make, draw = GENERATOR_KINDS[kind]
+    generator = make()
+    draw(generator)
+    parts = {"noise_rng": generator}
+    state = ckpt.snapshot("fork", types.SimpleNamespace(), [], 0, {}, {}, parts)
+    for k, checkpoint in enumerate(split_seeds(state, parts, [[], []], ["a", "b"])):
+        torch.save(checkpoint, tmp_path / f"{k}.pt")
+    loaded = [torch.load(tmp_path / f"{k}.pt", weights_only=True) for k in range(2)]
+    ahead = draw(generator)
+    assert draw(generator) != ahead
+    ckpt.restore(join_seeds(loaded, parts), [], {}, {}, parts)
+    assert draw(generator) == ahead
+
+
+def with_generator(source, parts=""):
+    """TD3 whose exploration noise also draws from a NumPy generator of its own, `noise_rng` (one seed), with `parts`
+    added to run.start's, exiting at step $FORK_STOP_AT as if killed."""
+    fork = source.replace(SCHEDULER_AT, "    noise_rng = np.random.default_rng(args.seed)\n" + SCHEDULER_AT, 1)
+    noisy = (
+        "            actions = per_seed(noisy_action)(to_device(obs, device), actor, args.exploration_noise).cpu().numpy()\n"
+    )
+    noised = "            actions = np.clip(actions + noise_rng.normal(0, 0.3, actions.shape), -2, 2).astype(np.float32)\n"
+    fork = fork.replace(noisy, noisy + noised)
+    fork = fork.replace(
+        STEP_AT,
+        STEP_AT + "        if global_step == int(os.environ.get('FORK_STOP_AT', -1)):\n            os._exit(9)  # a kill\n",
+    )
+    fork = fork.replace("buffer=rb)", f"buffer=rb{parts})")
+    assert fork.count("noise_rng") == 2 + parts.count("noise_rng") and "os._exit" in fork
+    return fork if "\nimport os\n" in fork else fork.replace("import random\n", "import os\nimport random\n")
+
+
+def test_a_generator_of_the_forks_own_is_refused_unless_given_to_run_start_and_then_resumes_where_it_was(tmp_path):
+    """A fork's own generator left out of run.start's parts would start again on --resume: refused at the start of a
+    run that writes checkpoints, as is a part named as a checkpoint's own state. Given, a run killed after its
+    checkpoint at step 300 and resumed ends as the uninterrupted one: every actor weight and the generator's state."""
+    flags = ["--checkpoint-frequency", "300"]
+    refused = run_fork(tmp_path, with_generator, 1, *flags)
+    assert refused.returncode == 1
+    assert refused.stderr.strip().splitlines()[-1] == (
+        "error: `noise_rng` (Generator), a random generator of the script's own, is not in run.start's parts: a checkpoint "
+        "would not hold it, and --resume would start it again; add it there (run.start(..., noise_rng=noise_rng)), or "
+        "draw from torch's generator, which checkpoints hold"
+    )
+    taken = run_fork(tmp_path, functools.partial(with_generator, parts=", rng=noise_rng"), 1, *flags)
+    assert taken.returncode == 1
+    assert taken.stderr.strip().splitlines()[-1] == (
+        "error: run.start's part `rng`: a checkpoint keeps its own `rng` under that name, which would replace it; give "
+        "the part another name (run.start(..., my_rng=...))"
+    )
+    fork = functools.partial(with_generator, parts=", noise_rng=noise_rng")
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    for folder in (whole, killed):
+        folder.mkdir()
+    assert run_fork(whole, fork, 1, *flags).returncode == 0
+    os.environ["FORK_STOP_AT"] = "350"
+    try:
+        assert run_fork(killed, fork, 1, *flags).returncode == 9
+    finally:
+        del os.environ["FORK_STOP_AT"]
+    resumed = run_fork(killed, fork, 1, *flags, "--resume", "runs/r1")
+    assert resumed.returncode == 0, resumed.stderr
+    a, b = (torch.load(folder / "runs" / "r1" / "checkpoint.pt", weights_only=True) for folder in (whole, killed))
+    assert a["global_step"] == b["global_step"] == 400 and a["noise_rng"] == b["noise_rng"]
+    for name, tensor in a["nets"]["actor"].items():
+        assert torch.equal(tensor, b["nets"]["actor"][name]), name
