@@ -125,8 +125,9 @@ class Run:
     def check_state_held(self):
         """Every object main holds that has a state (a state_dict() and a load_state_dict(): a learning-rate
         scheduler, a running normaliser, a GradScaler; a random generator of its own) is checkpointed, among
-        run.start's parts: else a resumed run would start it from its initial state, silently. Found among main's names, and a learning-rate scheduler also by the
-        optimizer step it wraps (one made in a helper). Looked at where checkpoints are written."""
+        run.start's parts: else a resumed run would start it from its initial state, silently. Found among main's
+        names, and a learning-rate scheduler also by the optimizer step it wraps (one made in a helper). Looked at
+        where checkpoints are written."""
         if not self.args.checkpoint_frequency:
             return
         # a scheduler made of others (SequentialLR, ChainedScheduler) holds theirs in its state_dict
