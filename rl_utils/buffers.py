@@ -52,6 +52,8 @@ class ReplayBuffer:
     """Each seed's transitions in one preallocated [num_seeds, capacity, fields] tensor: one row per seed per add, one
     gather per batch, each seed's batch drawn from its own transitions."""
 
+    FIELDS = ("capacity", "pos", "size", "num_seeds", "widths", "storage")  # a subclass's own are checkpointed too
+
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, num_seeds: int, device: torch.device):
         self.capacity, self.pos, self.size, self.num_seeds = capacity, 0, 0, num_seeds
         self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
@@ -87,8 +89,31 @@ class ReplayBuffer:
         return Batch(obs, actions, next_obs, rewards.squeeze(-1), terminations.squeeze(-1))
 
     def state_dict(self) -> dict:
-        return {"rows": self.storage[:, : self.size].cpu().clone(), "pos": self.pos}
+        """The rows stored and where the next goes; and what a subclass adds (a prioritised buffer's priorities and
+        largest priority): its tensors, arrays (as tensors) and numbers, so that --resume restores them too."""
+        added = {name: value for name, value in vars(self).items() if name not in ReplayBuffer.FIELDS}
+        for name, value in added.items():
+            if not isinstance(value, (torch.Tensor, np.ndarray, int, float, bool, str, type(None))):
+                raise refusal(
+                    TypeError,
+                    f"{type(self).__name__}.{name} is a {type(value).__name__}, which a checkpoint of the buffer cannot "
+                    "hold: hold a subclass's state in tensors, arrays and numbers, or give the subclass a state_dict() "
+                    "and a load_state_dict() of its own",
+                )
+        added = {name: torch.from_numpy(v.copy()) if isinstance(v, np.ndarray) else v for name, v in added.items()}
+        added = {name: v.cpu().clone() if isinstance(v, torch.Tensor) else v for name, v in added.items()}
+        return {"rows": self.storage[:, : self.size].cpu().clone(), "pos": self.pos, **added}
 
     def load_state_dict(self, state: dict):
         self.storage[:, : state["rows"].shape[1]] = state["rows"].to(self.storage.device)
         self.size, self.pos = state["rows"].shape[1], state["pos"]
+        for name, value in state.items():
+            now = getattr(self, name, None)
+            if name in ("rows", "pos"):
+                continue
+            if isinstance(now, torch.Tensor):
+                now.copy_(value)
+            elif isinstance(now, np.ndarray):
+                now[...] = value.numpy()
+            else:
+                setattr(self, name, value)

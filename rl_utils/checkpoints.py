@@ -5,6 +5,7 @@ seeds writes one checkpoint per seed (rl_utils.seeds cuts them), each in its run
 
 import os
 import random
+from collections import OrderedDict
 from typing import Optional
 
 import numpy as np
@@ -202,12 +203,47 @@ def load_checkpoint(run_dir: str, script: str, name: str = CHECKPOINT) -> dict:
     return checkpoint
 
 
+# what torch.load(weights_only=True), --resume's safe loading, reads back: these values, in dicts, lists and tuples
+LOADABLE = (torch.Tensor, int, float, bool, str, bytes, type(None), complex, torch.Size, torch.dtype, torch.device)
+
+
+def unloadable(state, path="") -> Optional[tuple]:
+    """The first value in a checkpoint's state that weights_only loading refuses (a NumPy array, a deque, an Enum, a
+    NumPy number): (where, its type's name), or None."""
+    if type(state) in (dict, OrderedDict):
+        found = (unloadable(v, f"{path}[{k!r}]") for k, v in state.items())
+    elif type(state) in (list, tuple, set):
+        found = (unloadable(v, f"{path}[{i}]") for i, v in enumerate(state))
+    else:
+        return None if isinstance(state, LOADABLE) else (path, f"{type(state).__module__}.{type(state).__qualname__}")
+    return next((f for f in found if f), None)
+
+
+def check_loadable(path: str, state: dict):
+    """A checkpoint --resume could not load is refused when written, not hours later at the resume: what it holds
+    that safe loading refuses, named (a part's or a flag's)."""
+    if not torch.serialization.get_unsafe_globals_in_checkpoint(path):
+        return
+    where, kind = unloadable(state) or ("", "an object")
+    key, _, inner = where[2:].partition("]")
+    key = key.strip("'")
+    what = f"the flag `{inner[2:-2]}`" if key == "args" else f"run.start's part `{key}`" + (f", at {inner}," if inner else "")
+    os.remove(path)
+    fail(
+        f"{what} holds a {kind}, which --resume's safe loading (torch.load(weights_only=True)) refuses: the run could "
+        "not be resumed from its checkpoints; hold tensors, numbers and strings there, in dicts, lists or tuples "
+        "(torch.from_numpy(array), float(x), list(a_deque))"
+    )
+
+
 def write_checkpoints(run_dirs: list, states: list, name: str = CHECKPOINT):
     """Each seed's checkpoint into its run folder. All are written before any replaces its predecessor, so that a kill
-    leaves either all the old ones or, for any seed still at the old step, its new one complete beside it."""
+    leaves either all the old ones or, for any seed still at the old step, its new one complete beside it. One that
+    --resume could not load is refused."""
     paths = [os.path.join(run_dir, name) for run_dir in run_dirs]
     for path, state in zip(paths, states):
         torch.save(state, path + ".tmp")
+        check_loadable(path + ".tmp", state)
     for path in paths:
         os.replace(path + ".tmp", path)
 

@@ -49,6 +49,19 @@ class Logs:
     def evaluate(self, step: int, returns: np.ndarray):
         """Records each seed's evaluation returns [num_seeds, episodes]: in its TensorBoard run, its checkpoints and a
         line. The time it took does not count in the training speed."""
+        n = len(self.writers)
+        if np.ndim(returns) != 2 or np.shape(returns)[0] != n:
+            raise refusal(
+                ValueError,
+                f"run.evaluate: returns of shape {list(np.shape(returns))} for {n} seed(s): one row of episode returns per "
+                f"seed, [{n}, episodes] (rl_utils.evaluate gives them)",
+            )
+        if self.eval_returns[0] and self.eval_returns[0][-1][0] == step:
+            raise refusal(
+                ValueError,
+                f"run.evaluate: a second evaluation at step {step}: eval/episodic_return and the checkpoints keep one a "
+                "step; log another policy's returns under a tag of its own (run.log({'eval/other_return': ...}, step))",
+            )
         for k, (writer, seed_returns) in enumerate(zip(self.writers, returns)):
             self.eval_returns[k].append((step, float(seed_returns.mean())))
             writer.add_scalar("eval/episodic_return", seed_returns.mean(), step)
@@ -66,8 +79,14 @@ class Logs:
         .item() from every seed's values), which would be logged as every seed's own."""
         n = len(self.writers)
         for tag, value in logs.items():
-            if n == 1 or (value.numel() if isinstance(value, torch.Tensor) else np.size(value)) == n:
+            if (value.numel() if isinstance(value, torch.Tensor) else np.size(value)) == n:
                 continue
+            if n == 1:
+                raise refusal(
+                    ValueError,
+                    f"run.log: `{tag}` has {np.size(value) if not isinstance(value, torch.Tensor) else value.numel()} "
+                    f"values (shape {list(np.shape(value))}): log one number per seed (a mean over the batch, .mean())",
+                )
             if isinstance(value, torch.Tensor) or np.ndim(value) > 0:
                 what = f"{'a tensor' if isinstance(value, torch.Tensor) else 'an array'} of shape {list(np.shape(value))}"
                 hint = "a mean over each seed's own dimensions, .mean(-1), not over the seeds"
@@ -83,7 +102,9 @@ class Logs:
         values = {tag: torch.as_tensor(value).reshape(-1).broadcast_to(n).tolist() for tag, value in logs.items()}
         for tag, seed_values in values.items():
             if not all(math.isfinite(value) for value in seed_values):
-                raise NonFiniteError(tag.split("/")[-1])
+                error = NonFiniteError(tag.split("/")[-1])
+                error.tag = tag
+                raise error
         for tag, seed_values in values.items():
             for writer, value in zip(self.writers, seed_values):
                 writer.add_scalar(tag, value, step)

@@ -4,6 +4,7 @@ checkpoints and its saved model, as an ordinary single-seed run has them."""
 import contextlib
 import dataclasses
 import os
+import re
 import sys
 import time
 
@@ -15,15 +16,28 @@ from tqdm import tqdm
 from rl_utils import checkpoints as ckpt
 from rl_utils.cli import script_of
 from rl_utils.envs import SeedEnvs
-from rl_utils.errors import fail
+from rl_utils.errors import fail, refusal
 from rl_utils.logs import Logs
 from rl_utils.numerics import NonFiniteError
 from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
 
 
 def part_name(name: str) -> str:
-    """A name run.start can take for a part main holds as `name` (not one of a checkpoint's own keys)."""
+    """A name run.start can take for a part main holds as `name` (`q_schedulers[0]`: q_schedulers_0), not one of a
+    checkpoint's own keys."""
+    name = re.sub(r"\W+", "_", name).strip("_")
     return f"my_{name}" if name in ckpt.OWN_KEYS else name
+
+
+def held(names: dict, depth: int = 2):
+    """(label, object) for each of main's names and what its lists, tuples and dicts hold, `depth` levels down
+    (`q_optimizers[0]`, `nets['actor']`): where a network, optimizer or state main holds may be."""
+    for name, x in names.items():
+        yield name, x
+        if depth and isinstance(x, (list, tuple)):
+            yield from held({f"{name}[{i}]": v for i, v in enumerate(x)}, depth - 1)
+        elif depth and isinstance(x, dict):
+            yield from held({f"{name}[{k!r}]": v for k, v in x.items()}, depth - 1)
 
 
 class Run:
@@ -52,6 +66,7 @@ class Run:
         self.finished = self.start_step >= args.total_timesteps
         if self.finished:
             print(f"{', '.join(self.run_dirs)} had already finished its {args.total_timesteps} steps")
+        self.guarded = 0  # how many run.stop_on_nan blocks are open
         self.video_folders = [f"videos/{os.path.basename(d)}" if args.capture_video else None for d in self.run_dirs]
         if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
             os.environ.setdefault("MUJOCO_GL", "disable")
@@ -72,23 +87,40 @@ class Run:
         the script's own); restores them on --resume; opens the logs. Returns the observations a resumed run acts on
         next (for SeedEnvs [num_seeds, obs_dim]; for one plain env, its observation or None where an episode starts),
         and None for a fresh run."""
-        for name in parts:
+        for name, part in parts.items():
             if name in ckpt.OWN_KEYS:
                 fail(
                     f"run.start's part `{name}`: a checkpoint keeps its own `{name}` under that name, which would replace "
                     f"it; give the part another name (run.start(..., my_{name}=...))"
                 )
+            if not isinstance(part, (torch.Tensor, *ckpt.GENERATORS)) and not hasattr(part, "load_state_dict"):
+                fail(
+                    f"run.start's part `{name}` is a {type(part).__name__}, which --resume cannot restore in place (main "
+                    "would go on with the object it made, not the checkpoint's): hold it in a tensor changed in place "
+                    f"({name} = torch.tensor(...), then {name}.copy_(...) or {name}.mul_(...)), or in an object with "
+                    "state_dict() and load_state_dict()"
+                )
         self.envs, self.nets, self.optimizers, self.parts = envs, nets, optimizers, parts
         self.env_list = list(envs) if isinstance(envs, SeedEnvs) else [envs]
-        # the names main binds these networks and optimizers to, which end_step watches; one it holds but did not
-        # give would be left out of the checkpoints, and start again from its initial state on --resume
+        # the names main binds these networks, optimizers and parts to, which end_step watches; one it holds but did
+        # not give (by a name, or in a list or dict) would be left out of the checkpoints, and start again from its
+        # initial state on --resume
         self.caller = sys._getframe(1)
-        watched = {id(x): x for x in [*nets.values(), *optimizers.values()]}
+        watched = {id(x): x for x in [*nets.values(), *optimizers.values(), *parts.values()]}
         self.bound = {name: x for name, x in self.caller.f_locals.items() if id(x) in watched and x is watched[id(x)]}
-        for name, x in self.caller.f_locals.items():
-            if isinstance(x, (torch.nn.Module, torch.optim.Optimizer)) and id(x) not in watched:
+        modules = {id(m) for net in nets.values() for m in net.modules()}  # a layer of a network given is held
+        for name, x in held(self.caller.f_locals):
+            if (
+                isinstance(x, torch.nn.Module)
+                and id(x) not in modules
+                or (isinstance(x, torch.optim.Optimizer) and id(x) not in watched)
+            ):
                 kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
-                fail(f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there")
+                fail(
+                    f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there"
+                    + ("" if name.isidentifier() else f" (each under a name of its own: '{part_name(name)}': {name})")
+                )
+        self.check_stacked_for_the_seeds()
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
         self.check_state_held()
         observations = None
@@ -104,7 +136,31 @@ class Run:
         self.logs.evaluate(step, returns)
 
     def log(self, logs: dict, step: int):
-        self.logs.log(logs, step)
+        try:
+            self.logs.log(logs, step)
+        except NonFiniteError as error:
+            if self.guarded:  # stop_on_nan ends the run, saving its last finite state
+                raise
+            raise refusal(
+                FloatingPointError,
+                f"run.log: `{error.tag}` is not finite at step {step} (logged outside run.stop_on_nan, which would end "
+                "the run saving its last finite state): a logged value must be a number; a loss goes through optimize's "
+                "NaN check, a statistic may be undefined (a std of one value)",
+            ) from None
+
+    def check_stacked_for_the_seeds(self):
+        """With several seeds, every network given is stack_seeds': one built in plain PyTorch (`Net().to(device)`) is
+        one network for all the seeds, which would train on every seed's data, and a checkpoint would cut its weights
+        as if they were stacked."""
+        n = len(self.seeds)
+        for name, net in self.nets.items() if n > 1 else ():
+            loose = next((p for p in net.parameters() if getattr(p, "num_seeds", 1) != n), None)
+            if loose is not None:
+                fail(
+                    f"`{name}` ({type(net).__name__}) is not stacked for the {n} seeds (a parameter {list(loose.shape)}): "
+                    "one network would train on every seed's data; build it with stack_seeds, in networks() or a call "
+                    "of its own, which gives each seed its own weights"
+                )
 
     def log_episodes(self, infos, step: int):
         self.logs.log_episodes(infos, step)
@@ -114,12 +170,18 @@ class Run:
         count is each seed's own, but a ReduceLROnPlateau follows one number, one seed's loss or all of theirs."""
         if len(self.seeds) == 1:
             return
-        for name, x in [*self.caller.f_locals.items(), *self.parts.items()]:
+        for name, x in [*held(self.caller.f_locals), *self.parts.items()]:
             if isinstance(x, lr_scheduler.ReduceLROnPlateau):
                 fail(
                     f"`{name}` (ReduceLROnPlateau) follows one number, and its optimizer steps every seed's weights: with "
                     f"{len(self.seeds)} seeds it would set one learning rate for all of them; train one seed per process "
                     "(--num-seeds 1)"
+                )
+            if isinstance(x, torch.amp.GradScaler):
+                fail(
+                    f"`{name}` (GradScaler) keeps one loss scale for every seed, and skips every seed's step when one "
+                    f"seed's gradients overflow: with {len(self.seeds)} seeds one seed would stop the others; train one "
+                    "seed per process (--num-seeds 1), or in bfloat16 (--bf16), which needs no scaler"
                 )
 
     def check_state_held(self):
@@ -132,10 +194,10 @@ class Run:
             return
         # a scheduler made of others (SequentialLR, ChainedScheduler) holds theirs in its state_dict
         parts = [*self.parts.values(), *(s for part in self.parts.values() for s in getattr(part, "_schedulers", []))]
-        held = {id(part) for part in parts}
+        held_parts = {id(part) for part in parts}
         held_optimizers = {id(getattr(part, "optimizer", None)) for part in parts}
-        for name, x in self.caller.f_locals.items():
-            if id(x) in held or isinstance(x, (type, torch.nn.Module, torch.optim.Optimizer)):  # a class: no state
+        for name, x in held(self.caller.f_locals):
+            if id(x) in held_parts or isinstance(x, (type, torch.nn.Module, torch.optim.Optimizer)):  # a class: no state
                 continue
             if isinstance(x, (lr_scheduler.LRScheduler, lr_scheduler.ReduceLROnPlateau)):
                 fail(
@@ -174,6 +236,7 @@ class Run:
         """Ends the run on a non-finite loss. An eager update stops before the optimizer step that the loss would
         have poisoned, so the state is still finite and is saved (each seed's in its folder); a recorded graph is
         checked only when it logs."""
+        self.guarded += 1
         try:
             yield
         except NonFiniteError as quantity:
@@ -191,6 +254,8 @@ class Run:
                 f"{quantity} became non-finite at step {step} (try a smaller {' or '.join(rates)}); the last finite state "
                 f"is in {where}"
             )
+        finally:
+            self.guarded -= 1
 
     def end_step(self, step: int, can_checkpoint: bool = True):
         """After step `step`: the training speed every 1000 steps (evaluations excluded), the progress bar, a
@@ -200,12 +265,18 @@ class Run:
         self.logs.step(step)
         now = self.caller.f_locals
         for name, x in self.bound.items():
-            if now.get(name) is not x:
+            if now.get(name) is not x and isinstance(x, (torch.nn.Module, torch.optim.Optimizer)):
                 what = "network" if isinstance(x, torch.nn.Module) else "optimizer"
                 fail(
                     f"`{name}` was bound to a new object by step {step}: the checkpoints, --save-model and a --cudagraphs "
                     f"update hold the {what} given to run.start; change it in place instead (a reset: "
                     f"{name}.load_state_dict(fresh.state_dict()), fresh built as main builds it, by stack_seeds)"
+                )
+            if now.get(name) is not x:
+                fail(
+                    f"`{name}` was bound to a new object by step {step}: the checkpoints hold the part given to run.start, "
+                    f"and --resume would restore that one; change it in place instead ({name}.copy_(...), "
+                    f"{name}.mul_(...); an object: its load_state_dict(...))"
                 )
         if args.checkpoint_frequency and can_checkpoint and self.next_checkpoint <= step + 1 < args.total_timesteps:
             ckpt.write_checkpoints(self.run_dirs, self.state(step + 1))

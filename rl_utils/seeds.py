@@ -18,6 +18,7 @@ a stacked parameter as the one-seed tensor it is; anything else stays PyTorch's 
 """
 
 import functools
+import inspect
 import os
 import random
 import weakref
@@ -39,18 +40,28 @@ STACKED = weakref.WeakValueDictionary()
 
 def stack_seeds(networks, seeds: list, device: torch.device) -> list:
     """The networks `networks()` returns, built once per seed, each parameter and buffer stacked along a new leading
-    dimension, on the device. Seed k's initial weights (and buffers, a random projection's say) are those of a
-    single-seed run of seed k; a parameter keeps its requires_grad; a layer two networks share (an encoder), and a
-    parameter tied under two names, stay shared, stacked once. With several seeds, calling a network outside per_seed
-    stops in one line. One seed's networks are the ones built."""
+    dimension, on the device. Built right after the process's generator was seeded with the first seed (main's first
+    build), seed k's initial weights (and buffers, a random projection's say) are those of a single-seed run of seed
+    k; a later build (a second call: another network, a reset) draws each seed's anew, as a single-seed run's later
+    build does, from seeds drawn from the process's generator, which checkpoints hold. A parameter keeps its
+    requires_grad; a layer two networks share (an encoder), and a parameter tied under two names, stay shared, stacked
+    once. With several seeds, calling a network outside per_seed stops in one line. One seed's networks are the ones
+    built."""
     if len(seeds) == 1:
         built = [net.to(device) for net in networks()]
+        check_networks(built)
     else:
+        if torch.equal(torch.get_rng_state(), torch.Generator().manual_seed(seeds[0]).get_state()):  # main's first build
+            draws = seeds
+            torch.randint(2**62, (1,))  # the process's generator moves on: a next call is a later build
+        else:
+            draws = torch.randint(2**62, (len(seeds),)).tolist()
         per_seed_nets = []
-        for seed in seeds:
-            with torch.random.fork_rng(devices=[]):  # the process's own generator stays as it was seeded
+        for seed in draws:
+            with torch.random.fork_rng(devices=[]):  # the process's own generator stays as it was
                 torch.manual_seed(seed)
                 per_seed_nets.append(networks())
+        check_networks(per_seed_nets[0])
         stacked_buffers = set()  # by id: a buffer of a layer two networks share is stacked once
         replaced = {}  # a parameter stacked, by the id of seed 0's: a parameter tied to it (two names) gets the same
         for nets in zip(*per_seed_nets):
@@ -81,6 +92,18 @@ def stack_seeds(networks, seeds: list, device: torch.device) -> list:
     for net in built:
         net.num_seeds = len(seeds)  # per_seed's check of its arguments reads it
     return built
+
+
+def check_networks(nets):
+    """networks() returns networks: a learnable tensor of their own (SAC's log_alpha) is a part of run.start's."""
+    for k, net in enumerate(nets):
+        if not isinstance(net, nn.Module):
+            raise refusal(
+                TypeError,
+                f"stack_seeds: networks() returned a {type(net).__name__} (item {k}), not a network (nn.Module): a "
+                "learnable tensor outside a network, SAC's log_alpha say, is a tensor [num_seeds, ...] given to run.start's "
+                "parts and its optimizer (as sac_continuous_action.py's log_alpha)",
+            )
 
 
 # how many per_seed calls are running (a per-seed function may call another): a network stacked for several seeds
@@ -135,11 +158,39 @@ def one_per_seed(x: torch.Tensor, n: int) -> bool:
     return x.dim() > 0 and x.shape[0] == n
 
 
+def by_position(fn, args: tuple, kwargs: dict) -> tuple:
+    """Arguments given by keyword, as per_seed takes them: by position, so that their tensors are cut per seed and
+    their networks swapped; a keyword-only one that holds no tensor is closed over. Returns (args, fn to call)."""
+    target = fn.forward if isinstance(fn, nn.Module) else fn
+    try:
+        bound = inspect.signature(target).bind(*args, **kwargs)
+    except TypeError as error:
+        raise refusal(TypeError, f"per_seed({name_of(fn)}): {error}") from None
+    for name, value in bound.kwargs.items():
+        if any(isinstance(x, (torch.Tensor, nn.Module)) for x in tree_flatten(value)[0]):
+            raise refusal(
+                TypeError,
+                f"per_seed({name_of(fn)}): its keyword-only argument `{name}` holds a tensor or a network, which per_seed "
+                "cuts per seed only among the positional ones: pass it by position",
+            )
+    return bound.args, functools.partial(fn, **bound.kwargs) if bound.kwargs else fn
+
+
 def check_seeds_dimension(fn, args, n: int):
-    """Every tensor argument of a per-seed function is one per seed: [n, ...]. A tensor shared by the seeds (an extra
-    [batch] tensor, say) would be cut along its first dimension; this stops it with the fix, in one line."""
+    """Every tensor argument of a per-seed function is one per seed: [n, ...], in tuples, lists and dicts too. A tensor
+    shared by the seeds (an extra [batch] tensor, say) would be cut along its first dimension; this stops it with the
+    fix, in one line. So does an object of another kind that holds tensors (a dataclass), which would not be cut."""
     for position, arg in enumerate(args, 1):
-        for x in tree_flatten(arg)[0] if isinstance(arg, tuple) else [arg]:
+        if not isinstance(arg, (torch.Tensor, tuple, list, dict, nn.Module)) and hasattr(arg, "__dict__"):
+            inside = next((k for k, v in vars(arg).items() if isinstance(v, torch.Tensor)), None)
+            if inside is not None:
+                raise refusal(
+                    TypeError,
+                    f"per_seed({name_of(fn)}): argument {position} is a {type(arg).__name__} holding a tensor (`{inside}`), "
+                    "which per_seed would not cut per seed (it cuts tensors, and tuples, lists and dicts of them): pass the "
+                    "tensors, or a NamedTuple of them",
+                )
+        for x in tree_flatten(arg)[0] if isinstance(arg, (tuple, list, dict)) else [arg]:
             if isinstance(x, torch.Tensor) and not one_per_seed(x, n):
                 raise refusal(
                     TypeError,
@@ -274,6 +325,8 @@ def vmap_refusal(fn, n: int, error: RuntimeError) -> RuntimeError:
             "other operations, or train one seed per process (--num-seeds 1)",
         )
     what = " ".join(str(error).split(". ")[0].removeprefix("vmap: ").split())
+    if "inplace randomness" in what:  # torch.distributions draws into a tensor it made: no seeds dimension
+        what += " (torch.distributions' sample() and rsample() draw that way: write mean + std * torch.randn_like(mean))"
     return refusal(
         RuntimeError,
         f"per_seed({name_of(fn)}) with {n} seeds: {what}. With several seeds the function runs for all "
@@ -323,12 +376,19 @@ def per_seed(fn):
     which would be one draw all seeds share."""
 
     @functools.wraps(fn)
-    def run(*args):
+    def run(*args, **kwargs):
+        args, call = by_position(fn, args, kwargs) if kwargs else (args, fn)
         n = num_seeds(fn, args)
         check_seeds_dimension(fn, args, n)
         if n == 1:  # as written, on seed 0's share of each tensor
             one_seed = tree_map(lambda x: x[0] if isinstance(x, torch.Tensor) else x, args)
-            return tree_map(lambda x: x.unsqueeze(0) if isinstance(x, torch.Tensor) else x, fn(*one_seed))
+            return tree_map(lambda x: x.unsqueeze(0) if isinstance(x, torch.Tensor) else x, call(*one_seed))
+        if torch.compiler.is_compiling():
+            raise refusal(
+                RuntimeError,
+                f"per_seed({name_of(fn)}) with {n} seeds under torch.compile: the seeds' vmap and its checks do not "
+                "compile; train one seed per process (--num-seeds 1) to compile, or record the update with --cudagraphs",
+            )
         modules = [fn, getattr(fn, "__self__", None), *args]  # fn may be a network or its method: per_seed(actor)(obs)
         networks = _Networks(list({id(x): x for x in modules if isinstance(x, nn.Module)}.values()))
         state = {**dict(networks.named_parameters()), **dict(networks.named_buffers())}
@@ -338,10 +398,11 @@ def per_seed(fn):
             if len(checked_states) >= 64:  # a network that makes new buffers at each call: keep the set small
                 checked_states.clear()
             checked_states.add(checked)
-        in_dims = [0 if isinstance(x, (torch.Tensor, tuple)) else None for x in args]
+        # each tensor is cut along the seeds, in tuples, lists and dicts too; anything else is the seeds' own
+        in_dims = [tree_map(lambda x: 0 if isinstance(x, torch.Tensor) else None, x) for x in args]
 
         def one_seed(state, *args):
-            return functional_call(networks, state, (fn, args))
+            return functional_call(networks, state, (call, args))
 
         code = code_of(fn)
         watched_calls[code] = calls = watched_calls.get(code, 0) + 1
@@ -610,6 +671,6 @@ def model_of_seed(saved: dict, k: int, num_seeds: int) -> dict:
             model[name] = seed_share(state, k) if num_seeds > 1 else state
         elif isinstance(x, torch.Tensor):
             model[name] = x.detach().cpu()[k : k + 1].clone()
-        else:  # an object with a state_dict(), e.g. PPO's observation statistics
-            model[name] = x.state_dict()
+        else:  # an object with a state_dict(), e.g. PPO's observation statistics: its tensors one per seed
+            model[name] = part_share(x.state_dict(), k) if num_seeds > 1 else x.state_dict()
     return model

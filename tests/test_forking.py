@@ -3,6 +3,7 @@ right numbers, or stops where it happens with one line that names the misuse and
 one seed and with several."""
 
 import dataclasses
+import enum
 import functools
 import os
 import random
@@ -10,6 +11,7 @@ import re
 import subprocess
 import sys
 import types
+import typing
 
 import numpy as np
 import pytest
@@ -1114,6 +1116,7 @@ def with_a_shared_encoder():
 
 
 def test_a_layer_two_networks_share_stays_shared_and_is_each_seeds_own():
+    torch.manual_seed(4)  # as main seeds the process before its first build
     actor, critic = stack_seeds(with_a_shared_encoder, [4, 5, 6], torch.device("cpu"))
     assert actor.encoder is critic.encoder and actor.encoder[0].weight.shape == (3, 4, 3)
     assert actor.encoder.calls.shape == (3,)
@@ -1168,6 +1171,7 @@ class Tied(nn.Module):
 
 
 def test_a_tied_parameter_stays_tied_per_seed():
+    torch.manual_seed(4)  # as main seeds the process before its first build
     (net,) = stack_seeds(lambda: [Tied()], [4, 5], torch.device("cpu"))
     assert net.decode.weight is net.encode.weight and net.encode.weight.shape == (2, 3, 3)
     assert len(list(net.parameters())) == 1
@@ -1315,3 +1319,308 @@ def test_a_generator_of_the_forks_own_not_given_to_run_start_is_refused(tmp_path
         "error: run.start's part `rng`: a checkpoint keeps its own `rng` under that name, which would replace it; give "
         "the part another name (run.start(..., my_rng=...))"
     )
+
+
+# What main holds and gives run.start, checked in-process: a test function stands in for main (run.start reads its
+# caller's names, as it reads main's).
+@pytest.fixture
+def run_of(tmp_path, monkeypatch):
+    """A Run of TD3's flags on Pendulum-v1 (its envs beside it), started from the calling test as from main."""
+    from rl_utils.run import Run
+
+    monkeypatch.chdir(tmp_path)
+    made = []
+
+    def make(num_seeds=1, **flags):
+        args = dataclasses.replace(td3.Args(), env_id="Pendulum-v1", num_seeds=num_seeds, run_name="r{seed}", **flags)
+        run = Run(args)
+        made.append(SeedEnvs("Pendulum-v1", run.seeds))
+        return run, made[-1]
+
+    yield make
+    for envs in made:
+        envs.close()
+
+
+CPU = torch.device("cpu")
+
+
+def test_a_network_or_optimizer_in_a_list_main_holds_is_refused_unless_given_and_a_layer_of_a_given_network_is_held(
+    run_of,
+):
+    """Optimizers kept in a list (one per critic) are found inside it: left out of run.start's optimizers, --resume
+    would start Adam again. A layer of a network given, held by a name of its own, is checkpointed with that network."""
+    run, envs = run_of()
+    qf = nn.ModuleList([nn.Linear(4, 1), nn.Linear(4, 1)])
+    q_optimizers = [torch.optim.Adam(q.parameters()) for q in qf]
+    with pytest.raises(SystemExit) as refused:
+        run.start(envs, CPU, {"qf": qf}, {})
+    assert str(refused.value) == (
+        "error: `q_optimizers[0]` is not in run.start's optimizers: a checkpoint would not hold it; add it there (each "
+        "under a name of its own: 'q_optimizers_0': q_optimizers[0])"
+    )
+    first_critic = qf[0]  # a layer of a network given: held
+    run.start(envs, CPU, {"qf": qf}, {f"q_optimizer_{k}": opt for k, opt in enumerate(q_optimizers)})
+    run.logs.close()
+    assert first_critic is qf[0]
+
+
+def test_state_in_a_list_is_refused_where_checkpoints_are_written(run_of):
+    """A generator (or a scheduler, or an object with a state_dict) inside a list main holds is found as one held by
+    name is, in a run that writes checkpoints."""
+    noise_rngs = [np.random.default_rng(1)]
+    run, envs = run_of(checkpoint_frequency=100)
+    with pytest.raises(SystemExit, match=re.escape("`noise_rngs[0]` (Generator), a random generator of the script's own")):
+        run.start(envs, CPU, {}, {})
+    with pytest.raises(SystemExit, match=re.escape("add it there (run.start(..., noise_rngs_0=noise_rngs[0]))")):
+        run.start(envs, CPU, {}, {})
+    run.start(envs, CPU, {}, {}, noise_rngs_0=noise_rngs[0])
+    run.logs.close()
+
+
+@pytest.mark.parametrize("part", [0.5, {"updates": 0}], ids=["a number", "a dict"])
+def test_a_part_resume_cannot_restore_in_place_is_refused(run_of, part):
+    """A checkpoint would hold a number's or a dict's value, but --resume cannot put it back into main's own object:
+    refused at the start, with the way that works."""
+    run, envs = run_of()
+    with pytest.raises(SystemExit) as refused:
+        run.start(envs, CPU, {}, {}, coef=part)
+    assert str(refused.value).startswith(
+        f"error: run.start's part `coef` is a {type(part).__name__}, which --resume cannot restore in place"
+    )
+    assert "coef = torch.tensor(...), then coef.copy_(...) or coef.mul_(...)" in str(refused.value)
+
+
+def test_a_part_bound_anew_stops_the_run_at_that_step(run_of):
+    """A tensor part main binds anew (coef = coef * 0.99) leaves the checkpoint holding the old one: the run stops at
+    the step it happens; changed in place, it goes on."""
+    run, envs = run_of()
+    coef = torch.ones(1)
+    run.start(envs, CPU, {}, {}, coef=coef)
+    coef.mul_(0.99)
+    run.end_step(0)
+    coef = coef * 0.99
+    with pytest.raises(SystemExit, match=re.escape("`coef` was bound to a new object by step 1: the checkpoints hold")):
+        run.end_step(1)
+    run.logs.close()
+
+
+def test_with_several_seeds_a_network_not_built_by_stack_seeds_is_refused(run_of):
+    """A bonus model built in plain PyTorch beside stacked networks is one network for every seed: it would train on
+    all the seeds' data, and a checkpoint would cut its weights as if stacked. Refused at the start; one seed's is
+    fine."""
+    run, envs = run_of(num_seeds=2)
+    torch.manual_seed(1)
+    (actor,) = stack_seeds(lambda: [nn.Linear(3, 1)], run.seeds, CPU)
+    bonus = nn.Sequential(nn.Linear(3, 8), nn.Linear(8, 1))
+    with pytest.raises(SystemExit) as refused:
+        run.start(envs, CPU, {"actor": actor, "bonus": bonus}, {})
+    assert str(refused.value) == (
+        "error: `bonus` (Sequential) is not stacked for the 2 seeds (a parameter [8, 3]): one network would train on "
+        "every seed's data; build it with stack_seeds, in networks() or a call of its own, which gives each seed its own "
+        "weights"
+    )
+    del actor
+    run, envs = run_of(num_seeds=1)
+    run.start(envs, CPU, {"bonus": bonus}, {})
+    run.logs.close()
+
+
+def test_a_grad_scaler_is_refused_with_several_seeds(run_of):
+    """One loss scale for every seed, and one seed's overflow skipping every seed's step."""
+    scaler = torch.amp.GradScaler("cpu")
+    run, envs = run_of(num_seeds=2)
+    with pytest.raises(SystemExit, match=r"`scaler` \(GradScaler\) keeps one loss scale for every seed.*--num-seeds 1"):
+        run.start(envs, CPU, {}, {})
+    run, envs = run_of(num_seeds=1)
+    run.start(envs, CPU, {}, {}, scaler=scaler)
+    run.logs.close()
+
+
+def test_a_later_stack_seeds_build_draws_each_seeds_networks_anew_and_reproducibly():
+    """Main's first build gives seed k a single-seed run's initial weights; a later one (a predictor beside its
+    target, a reset's fresh networks) draws anew for each seed, as a single-seed run's later build does, from the
+    process's generator: the same again after the same seeding. A non-network from networks() is refused."""
+
+    def build():
+        torch.manual_seed(4)
+        return [stack_seeds(lambda: [nn.Linear(3, 2)], [4, 5, 6], CPU)[0].weight.detach().clone() for _ in range(3)]
+
+    first, second, third = build()
+    for k, seed in enumerate([4, 5, 6]):
+        torch.manual_seed(seed)
+        assert torch.equal(first[k], nn.Linear(3, 2).weight)
+    for k in range(3):
+        assert not torch.equal(second[k], first[k]) and not torch.equal(third[k], second[k])
+    assert not torch.equal(second[0], second[1])
+    assert all(torch.equal(a, b) for a, b in zip([first, second, third], build()))
+    with pytest.raises(TypeError, match=r"^stack_seeds: networks\(\) returned a Parameter \(item 1\), not a network"):
+        stack_seeds(lambda: [nn.Linear(3, 2), nn.Parameter(torch.zeros(1))], [4, 5], CPU)
+
+
+class ObsStats:
+    """A running normaliser whose state is NumPy's: --resume's safe loading cannot read it."""
+
+    def __init__(self):
+        self.mean = np.zeros(3)
+
+    def state_dict(self):
+        return {"mean": self.mean}
+
+    def load_state_dict(self, state):
+        self.mean = state["mean"]
+
+
+def test_a_checkpoint_resume_could_not_load_is_refused_when_written(run_of, tmp_path):
+    """A part whose state holds a NumPy array (or a flag holding an Enum) would be written without complaint and
+    refused at --resume, hours later: the first checkpoint stops the run instead, naming it, and leaves no file."""
+    run, envs = run_of(checkpoint_frequency=2, total_timesteps=10)
+    run.start(envs, CPU, {}, {}, obs_stats=ObsStats())
+    run.end_step(0)
+    with pytest.raises(SystemExit) as refused:
+        run.end_step(1)
+    assert str(refused.value).startswith(
+        "error: run.start's part `obs_stats`, at ['mean'], holds a numpy.ndarray, which --resume's safe loading "
+        "(torch.load(weights_only=True)) refuses"
+    )
+    assert not list((tmp_path / "runs" / "r1").glob("checkpoint.pt*"))
+    run.logs.close()
+
+    state = {"args": {"seed": 1, "mode": Mode.FAST}, "global_step": 2}
+    torch.save(state, tmp_path / "c.pt")
+    with pytest.raises(SystemExit, match=r"^error: the flag `mode` holds a .*Mode, which --resume's safe loading"):
+        ckpt.check_loadable(str(tmp_path / "c.pt"), state)
+
+
+class Mode(enum.Enum):
+    """A flag's type a fork might give its Args."""
+
+    FAST = 1
+
+
+class Prioritized(ReplayBuffer):
+    """A prioritised replay buffer as a fork writes one: a subclass with state of its own."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.priorities = torch.zeros(self.num_seeds, self.capacity)
+        self.max_priority = 1.0
+        self.visits = np.zeros((self.num_seeds, self.capacity), dtype=np.int64)
+
+
+@pytest.mark.parametrize("num_seeds", [1, 2])
+def test_a_replay_buffer_subclasss_own_state_goes_through_a_checkpoint(num_seeds, tmp_path):
+    """Its priorities, largest priority and an array of its own go into each seed's checkpoint (safely loadable) and
+    come back on resume; an attribute a checkpoint cannot hold is refused in one line."""
+    rb = Prioritized(8, 3, 1, num_seeds, CPU)
+    for t in range(5):
+        rb.add(
+            np.full((num_seeds, 3), t, np.float32),
+            np.ones((num_seeds, 3)),
+            np.zeros((num_seeds, 1)),
+            [1.0] * num_seeds,
+            [0.0] * num_seeds,
+        )
+        rb.priorities[:, t] = torch.arange(num_seeds) + t
+        rb.visits[:, t] = t
+    rb.max_priority = 7.5
+    parts = {"buffer": rb}
+    state = {"buffer": rb.state_dict()}
+    shares = split_seeds(
+        {**state, "nets": {}, "optimizers": {}, "envs": [None] * num_seeds}, parts, [[]] * num_seeds, ["a", "b"][:num_seeds]
+    )
+    for k, share in enumerate(shares):
+        torch.save(share, tmp_path / f"{k}.pt")
+    loaded = [torch.load(tmp_path / f"{k}.pt", weights_only=True) for k in range(num_seeds)]
+    resumed = Prioritized(8, 3, 1, num_seeds, CPU)
+    resumed.load_state_dict(join_seeds(loaded, parts)["buffer"])
+    assert torch.equal(resumed.priorities, rb.priorities) and resumed.max_priority == 7.5
+    assert np.array_equal(resumed.visits, rb.visits) and resumed.visits.dtype == np.int64
+    assert torch.equal(resumed.storage, rb.storage) and (resumed.pos, resumed.size) == (5, 5)
+    rb.sum_tree = object()
+    with pytest.raises(TypeError, match=r"^Prioritized.sum_tree is a object, which a checkpoint of the buffer cannot hold"):
+        rb.state_dict()
+
+
+class Scale(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.fc = nn.Linear(3, 2)
+
+    def forward(self, x, scale=1.0, *, shift):
+        return self.fc(x) * scale + shift
+
+
+@pytest.mark.parametrize("seeds", [[4], [4, 5, 6]], ids=["one seed", "three seeds"])
+def test_per_seed_takes_keywords_and_cuts_tensors_in_lists_and_dicts(seeds):
+    """Arguments by keyword are taken as by position (their tensors cut per seed, their networks swapped); tensors in
+    a dict or a list are cut per seed as in a tuple; a NamedTuple's number is the seeds' own. A keyword-only tensor,
+    and an object holding a tensor, which per_seed would not cut, stop in one line."""
+    torch.manual_seed(seeds[0])
+    (net,) = stack_seeds(lambda: [Scale()], seeds, CPU)
+    x = torch.randn(len(seeds), 5, 3)
+
+    def fn(batch, net, scale):
+        return net(batch["x"], scale, shift=batch["extra"][0])
+
+    expected = per_seed(lambda x, shift, net: net(x, 2.0, shift=shift))(x, x[..., :1], net)
+    assert torch.equal(per_seed(fn)({"x": x, "extra": [x[..., :1]]}, net, 2.0), expected)
+    assert torch.equal(per_seed(fn)(scale=2.0, net=net, batch={"x": x, "extra": [x[..., :1]]}), expected)
+    assert torch.equal(per_seed(net)(x, 2.0, shift=1.0), per_seed(lambda x, net: net(x, 2.0, shift=1.0))(x, net))
+
+    class Pair(typing.NamedTuple):
+        x: torch.Tensor
+        scale: float
+
+    assert torch.equal(
+        per_seed(lambda p, net: net(p.x, p.scale, shift=0.0))(Pair(x, 2.0), net), per_seed(net)(x, 2.0, shift=0.0)
+    )
+    with pytest.raises(TypeError, match=r"^per_seed\(Scale\): its keyword-only argument `shift` holds a tensor"):
+        per_seed(net)(x, shift=x[..., :1])
+
+    @dataclasses.dataclass
+    class Holder:
+        x: torch.Tensor
+
+    with pytest.raises(TypeError, match=r"^per_seed\(<lambda>\): argument 1 is a Holder holding a tensor \(`x`\)"):
+        per_seed(lambda h, net: net(h.x, shift=0.0))(Holder(x), net)
+
+
+def test_what_run_log_and_run_evaluate_cannot_take_stops_in_one_line(run_of):
+    """A tensor of a batch's values logged with one seed, a NaN logged outside run.stop_on_nan (inside, it ends the
+    run), returns that are not [num_seeds, episodes], and a second evaluation at one step."""
+    run, envs = run_of()
+    run.start(envs, CPU, {}, {})
+    with pytest.raises(ValueError, match=r"^run.log: `losses/q` has 64 values \(shape \[64\]\): log one number per seed"):
+        run.log({"losses/q": torch.zeros(64)}, 0)
+    with pytest.raises(FloatingPointError, match=r"^run.log: `losses/action_std` is not finite at step 0"):
+        run.log({"losses/action_std": torch.tensor([float("nan")])}, 0)
+    with pytest.raises(SystemExit, match="action_std became non-finite at step 0"):
+        with run.stop_on_nan(0):
+            run.log({"losses/action_std": torch.tensor([float("nan")])}, 0)
+    with pytest.raises(ValueError, match=re.escape("run.evaluate: returns of shape [10] for 1 seed(s): one row")):
+        run.evaluate(0, np.zeros(10))
+    run.evaluate(0, np.zeros((1, 10)))
+    with pytest.raises(ValueError, match=r"^run.evaluate: a second evaluation at step 0"):
+        run.evaluate(0, np.ones((1, 10)))
+    run.logs.close()
+
+
+def test_torch_distributions_draws_and_torch_compile_with_several_seeds_stop_in_one_line():
+    """Normal(...).rsample() in a per-seed function draws into a tensor of its own, which a vmap cannot give each
+    seed: the stop names the rewrite. A per-seed function under torch.compile stops saying what to do instead."""
+    torch.manual_seed(4)
+    (net,) = stack_seeds(lambda: [nn.Linear(3, 2)], [4, 5, 6], CPU)
+    x = torch.randn(3, 5, 3)
+    with pytest.raises(RuntimeError, match=re.escape("write mean + std * torch.randn_like(mean)")):
+        per_seed(lambda x, net: torch.distributions.Normal(net(x), 1.0).rsample())(x, net)
+    with pytest.raises(RuntimeError, match=r"^per_seed\(<lambda>\) with 3 seeds under torch.compile: .*--cudagraphs"):
+        torch.compile(lambda x: per_seed(lambda x, net: net(x))(x, net), backend="eager")(x)
+
+
+def test_save_model_cuts_an_objects_state_per_seed():
+    """--save-model of an object with a state (running statistics [num_seeds, ...]) gives each seed its own share."""
+    stats = types.SimpleNamespace(state_dict=lambda: {"mean": torch.arange(6.0).view(3, 2), "count": 4})
+    saved = [model_of_seed({"stats": stats}, k, 3)["stats"] for k in range(3)]
+    assert [s["mean"].tolist() for s in saved] == [[[0.0, 1.0]], [[2.0, 3.0]], [[4.0, 5.0]]]
+    assert all(s["count"] == 4 for s in saved)
