@@ -5,6 +5,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from rl_utils import checkpoints as ckpt
 from rl_utils import envs as env_layer
 from rl_utils.errors import refusal
 
@@ -89,28 +90,38 @@ class ReplayBuffer:
         return Batch(obs, actions, next_obs, rewards.squeeze(-1), terminations.squeeze(-1))
 
     def state_dict(self) -> dict:
-        """The rows stored and where the next goes; and what a subclass adds (a prioritised buffer's priorities and
-        largest priority): its tensors, arrays (as tensors) and numbers, so that --resume restores them too."""
-        added = {name: value for name, value in vars(self).items() if name not in ReplayBuffer.FIELDS}
-        for name, value in added.items():
-            if not isinstance(value, (torch.Tensor, np.ndarray, int, float, bool, str, type(None))):
+        """The rows stored and where the next goes; and, for a subclass that does not write its own, what it adds (a
+        prioritised buffer's priorities and largest priority): its tensors, arrays (as tensors), numbers and other
+        values a checkpoint can hold, so that --resume restores them too."""
+        state = {"rows": self.storage[:, : self.size].cpu().clone(), "pos": self.pos}
+        return state if type(self).state_dict is not ReplayBuffer.state_dict else {**state, **self.added_state()}
+
+    def added_state(self) -> dict:
+        added = {}
+        for name, value in vars(self).items():
+            if name in ReplayBuffer.FIELDS:
+                continue
+            if isinstance(value, np.generic):  # max_priority from an array's max()
+                value = value.item()
+            if isinstance(value, (torch.Tensor, np.ndarray)):
+                value = torch.from_numpy(value.copy()) if isinstance(value, np.ndarray) else value.cpu().clone()
+            elif ckpt.unloadable(value):
                 raise refusal(
                     TypeError,
                     f"{type(self).__name__}.{name} is a {type(value).__name__}, which a checkpoint of the buffer cannot "
                     "hold: hold a subclass's state in tensors, arrays and numbers, or give the subclass a state_dict() "
                     "and a load_state_dict() of its own",
                 )
-        added = {name: torch.from_numpy(v.copy()) if isinstance(v, np.ndarray) else v for name, v in added.items()}
-        added = {name: v.cpu().clone() if isinstance(v, torch.Tensor) else v for name, v in added.items()}
-        return {"rows": self.storage[:, : self.size].cpu().clone(), "pos": self.pos, **added}
+            added[name] = value
+        return added
 
     def load_state_dict(self, state: dict):
         self.storage[:, : state["rows"].shape[1]] = state["rows"].to(self.storage.device)
         self.size, self.pos = state["rows"].shape[1], state["pos"]
-        for name, value in state.items():
-            now = getattr(self, name, None)
-            if name in ("rows", "pos"):
-                continue
+        if type(self).load_state_dict is not ReplayBuffer.load_state_dict:  # the subclass restores its own
+            return
+        for name in vars(self).keys() & state.keys() - {"rows", "pos"}:
+            now, value = getattr(self, name), state[name]
             if isinstance(now, torch.Tensor):
                 now.copy_(value)
             elif isinstance(now, np.ndarray):

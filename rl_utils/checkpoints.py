@@ -5,6 +5,7 @@ seeds writes one checkpoint per seed (rl_utils.seeds cuts them), each in its run
 
 import os
 import random
+import re
 from collections import OrderedDict
 from typing import Optional
 
@@ -109,8 +110,8 @@ FORMAT = 3
 
 def snapshot(script: str, args, envs, global_step: int, nets: dict, optimizers: dict, parts: dict) -> dict:
     """A process's state at `global_step`: its flags, networks, optimizers and random generators, each env's state,
-    and `parts`: objects with a state_dict() (the replay buffer), tensors (SAC's log_alpha), random generators of the
-    script's own or plain values."""
+    and `parts`: objects with a state_dict() (the replay buffer), tensors (SAC's log_alpha) and random generators of the
+    script's own."""
     return {
         "script": script,
         "format": FORMAT,
@@ -215,7 +216,8 @@ def unloadable(state, path="") -> Optional[tuple]:
     elif type(state) in (list, tuple, set):
         found = (unloadable(v, f"{path}[{i}]") for i, v in enumerate(state))
     else:
-        return None if isinstance(state, LOADABLE) else (path, f"{type(state).__module__}.{type(state).__qualname__}")
+        loadable = isinstance(state, LOADABLE) and not isinstance(state, np.generic)  # np.float64 is a float
+        return None if loadable else (path, f"{type(state).__module__}.{type(state).__qualname__}")
     return next((f for f in found if f), None)
 
 
@@ -224,14 +226,20 @@ def check_loadable(path: str, state: dict):
     that safe loading refuses, named (a part's or a flag's)."""
     if not torch.serialization.get_unsafe_globals_in_checkpoint(path):
         return
-    where, kind = unloadable(state) or ("", "an object")
-    key, _, inner = where[2:].partition("]")
-    key = key.strip("'")
-    what = f"the flag `{inner[2:-2]}`" if key == "args" else f"run.start's part `{key}`" + (f", at {inner}," if inner else "")
+    found = unloadable(state)
+    if found is None:
+        what = f"the checkpoint holds {', '.join(torch.serialization.get_unsafe_globals_in_checkpoint(path))}"
+    else:
+        keys = [k.strip("'") for k in re.findall(r"\[('[^']*'|\d+)\]", found[0])]
+        if keys[0] == "args":
+            what = f"the flag `{keys[1]}` holds a {found[1]}"
+        else:
+            inside = "".join(f"[{k!r}]" if not k.isdigit() else f"[{k}]" for k in keys[1:])
+            what = f"run.start's part `{keys[0]}`{f', at {inside},' if inside else ''} holds a {found[1]}"
     os.remove(path)
     fail(
-        f"{what} holds a {kind}, which --resume's safe loading (torch.load(weights_only=True)) refuses: the run could "
-        "not be resumed from its checkpoints; hold tensors, numbers and strings there, in dicts, lists or tuples "
+        f"{what}, which --resume's safe loading (torch.load(weights_only=True)) refuses: the run could not be resumed "
+        "from its checkpoints; hold tensors, numbers and strings there, in dicts, lists or tuples "
         "(torch.from_numpy(array), float(x), list(a_deque))"
     )
 

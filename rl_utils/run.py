@@ -110,10 +110,9 @@ class Run:
         self.bound = {name: x for name, x in self.caller.f_locals.items() if id(x) in watched and x is watched[id(x)]}
         modules = {id(m) for net in nets.values() for m in net.modules()}  # a layer of a network given is held
         for name, x in held(self.caller.f_locals):
-            if (
-                isinstance(x, torch.nn.Module)
-                and id(x) not in modules
-                or (isinstance(x, torch.optim.Optimizer) and id(x) not in watched)
+            stateless = isinstance(x, torch.nn.Module) and not x.state_dict()  # a loss module, nn.MSELoss()
+            if (isinstance(x, torch.nn.Module) and id(x) not in modules and not stateless) or (
+                isinstance(x, torch.optim.Optimizer) and id(x) not in watched
             ):
                 kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
                 fail(
@@ -144,7 +143,7 @@ class Run:
             raise refusal(
                 FloatingPointError,
                 f"run.log: `{error.tag}` is not finite at step {step} (logged outside run.stop_on_nan, which would end "
-                "the run saving its last finite state): a logged value must be a number; a loss goes through optimize's "
+                "the run saving its last finite state): a logged value must be finite; a loss goes through optimize's "
                 "NaN check, a statistic may be undefined (a std of one value)",
             ) from None
 
@@ -177,7 +176,7 @@ class Run:
                     f"{len(self.seeds)} seeds it would set one learning rate for all of them; train one seed per process "
                     "(--num-seeds 1)"
                 )
-            if isinstance(x, torch.amp.GradScaler):
+            if isinstance(x, torch.amp.GradScaler) and x.is_enabled():
                 fail(
                     f"`{name}` (GradScaler) keeps one loss scale for every seed, and skips every seed's step when one "
                     f"seed's gradients overflow: with {len(self.seeds)} seeds one seed would stop the others; train one "

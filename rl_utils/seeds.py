@@ -161,17 +161,19 @@ def one_per_seed(x: torch.Tensor, n: int) -> bool:
 def by_position(fn, args: tuple, kwargs: dict) -> tuple:
     """Arguments given by keyword, as per_seed takes them: by position, so that their tensors are cut per seed and
     their networks swapped; a keyword-only one that holds no tensor is closed over. Returns (args, fn to call)."""
-    target = fn.forward if isinstance(fn, nn.Module) else fn
+    signature = inspect.signature(fn.forward if isinstance(fn, nn.Module) else fn)
     try:
-        bound = inspect.signature(target).bind(*args, **kwargs)
+        bound = signature.bind(*args, **kwargs)
     except TypeError as error:
         raise refusal(TypeError, f"per_seed({name_of(fn)}): {error}") from None
+    bound.apply_defaults()  # every parameter that can be positional is, defaults included
     for name, value in bound.kwargs.items():
         if any(isinstance(x, (torch.Tensor, nn.Module)) for x in tree_flatten(value)[0]):
+            kind = "keyword-only argument" if name in signature.parameters else "argument taken by **kwargs"
             raise refusal(
                 TypeError,
-                f"per_seed({name_of(fn)}): its keyword-only argument `{name}` holds a tensor or a network, which per_seed "
-                "cuts per seed only among the positional ones: pass it by position",
+                f"per_seed({name_of(fn)}): its {kind} `{name}` holds a tensor or a network, which per_seed cuts per "
+                "seed only among the arguments it can give by position: make it a positional parameter",
             )
     return bound.args, functools.partial(fn, **bound.kwargs) if bound.kwargs else fn
 
@@ -179,16 +181,19 @@ def by_position(fn, args: tuple, kwargs: dict) -> tuple:
 def check_seeds_dimension(fn, args, n: int):
     """Every tensor argument of a per-seed function is one per seed: [n, ...], in tuples, lists and dicts too. A tensor
     shared by the seeds (an extra [batch] tensor, say) would be cut along its first dimension; this stops it with the
-    fix, in one line. So does an object of another kind that holds tensors (a dataclass), which would not be cut."""
+    fix, in one line. So does, with several seeds, an object of another kind (a dataclass) holding a tensor of the
+    seeds' shape, which per_seed would not cut: every seed would see all of them. One holding tensors the seeds share
+    is passed whole, as written."""
     for position, arg in enumerate(args, 1):
-        if not isinstance(arg, (torch.Tensor, tuple, list, dict, nn.Module)) and hasattr(arg, "__dict__"):
-            inside = next((k for k, v in vars(arg).items() if isinstance(v, torch.Tensor)), None)
+        if n > 1 and not isinstance(arg, (torch.Tensor, tuple, list, dict, nn.Module)) and hasattr(arg, "__dict__"):
+            inside = next((k for k, v in vars(arg).items() if isinstance(v, torch.Tensor) and one_per_seed(v, n)), None)
             if inside is not None:
                 raise refusal(
                     TypeError,
-                    f"per_seed({name_of(fn)}): argument {position} is a {type(arg).__name__} holding a tensor (`{inside}`), "
-                    "which per_seed would not cut per seed (it cuts tensors, and tuples, lists and dicts of them): pass the "
-                    "tensors, or a NamedTuple of them",
+                    f"per_seed({name_of(fn)}): argument {position} is a {type(arg).__name__} holding `{inside}`, a tensor "
+                    f"[{n}, ...] with {n} seeds, which per_seed would not cut per seed (it cuts tensors, and tuples, lists "
+                    "and dicts of them): pass it as a tensor or in a NamedTuple; a tensor the seeds share goes inside the "
+                    "function (a closure, functools.partial)",
                 )
         for x in tree_flatten(arg)[0] if isinstance(arg, (tuple, list, dict)) else [arg]:
             if isinstance(x, torch.Tensor) and not one_per_seed(x, n):

@@ -5,6 +5,7 @@ one seed and with several."""
 import dataclasses
 import enum
 import functools
+import io
 import os
 import random
 import re
@@ -1349,7 +1350,8 @@ def test_a_network_or_optimizer_in_a_list_main_holds_is_refused_unless_given_and
     run_of,
 ):
     """Optimizers kept in a list (one per critic) are found inside it: left out of run.start's optimizers, --resume
-    would start Adam again. A layer of a network given, held by a name of its own, is checkpointed with that network."""
+    would start Adam again. A layer of a network given, held by a name of its own, is checkpointed with that network;
+    a module without state (a loss) needs no checkpoint."""
     run, envs = run_of()
     qf = nn.ModuleList([nn.Linear(4, 1), nn.Linear(4, 1)])
     q_optimizers = [torch.optim.Adam(q.parameters()) for q in qf]
@@ -1359,10 +1361,10 @@ def test_a_network_or_optimizer_in_a_list_main_holds_is_refused_unless_given_and
         "error: `q_optimizers[0]` is not in run.start's optimizers: a checkpoint would not hold it; add it there (each "
         "under a name of its own: 'q_optimizers_0': q_optimizers[0])"
     )
-    first_critic = qf[0]  # a layer of a network given: held
+    first_critic, losses = qf[0], {"mse": nn.MSELoss()}  # a layer of a network given; a module without state
     run.start(envs, CPU, {"qf": qf}, {f"q_optimizer_{k}": opt for k, opt in enumerate(q_optimizers)})
     run.logs.close()
-    assert first_critic is qf[0]
+    del first_critic, losses
 
 
 def test_state_in_a_list_is_refused_where_checkpoints_are_written(run_of):
@@ -1427,7 +1429,12 @@ def test_with_several_seeds_a_network_not_built_by_stack_seeds_is_refused(run_of
 
 
 def test_a_grad_scaler_is_refused_with_several_seeds(run_of):
-    """One loss scale for every seed, and one seed's overflow skipping every seed's step."""
+    """One loss scale for every seed, and one seed's overflow skipping every seed's step; one disabled (the
+    enabled=args.fp16 pattern) does nothing."""
+    scaler = torch.amp.GradScaler("cpu", enabled=False)
+    run, envs = run_of(num_seeds=2)
+    run.start(envs, CPU, {}, {}, scaler=scaler)
+    run.logs.close()
     scaler = torch.amp.GradScaler("cpu")
     run, envs = run_of(num_seeds=2)
     with pytest.raises(SystemExit, match=r"`scaler` \(GradScaler\) keeps one loss scale for every seed.*--num-seeds 1"):
@@ -1486,10 +1493,13 @@ def test_a_checkpoint_resume_could_not_load_is_refused_when_written(run_of, tmp_
     assert not list((tmp_path / "runs" / "r1").glob("checkpoint.pt*"))
     run.logs.close()
 
-    state = {"args": {"seed": 1, "mode": Mode.FAST}, "global_step": 2}
-    torch.save(state, tmp_path / "c.pt")
-    with pytest.raises(SystemExit, match=r"^error: the flag `mode` holds a .*Mode, which --resume's safe loading"):
-        ckpt.check_loadable(str(tmp_path / "c.pt"), state)
+    for state, said in [
+        ({"args": {"seed": 1, "modes": [Mode.FAST]}}, "the flag `modes` holds a test_forking.Mode"),
+        ({"args": {}, "stats": {"n": np.float64(2.0)}}, "run.start's part `stats`, at ['n'], holds a numpy.float64"),
+    ]:
+        torch.save(state, tmp_path / "c.pt")
+        with pytest.raises(SystemExit, match=re.escape(f"error: {said}, which --resume's safe loading")):
+            ckpt.check_loadable(str(tmp_path / "c.pt"), state)
 
 
 class Mode(enum.Enum):
@@ -1506,12 +1516,29 @@ class Prioritized(ReplayBuffer):
         self.priorities = torch.zeros(self.num_seeds, self.capacity)
         self.max_priority = 1.0
         self.visits = np.zeros((self.num_seeds, self.capacity), dtype=np.int64)
+        self.alpha, self.device = 0.6, CPU  # settings a checkpoint can hold too
+
+
+class WithATree(Prioritized):
+    """A subclass holding what a checkpoint cannot (a sum tree of its own class), with its own state_dict."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.tree = types.SimpleNamespace(total=0.0)
+
+    def state_dict(self):
+        return {**super().state_dict(), "tree_total": self.tree.total}
+
+    def load_state_dict(self, state):
+        super().load_state_dict(state)
+        self.tree.total = state["tree_total"]
 
 
 @pytest.mark.parametrize("num_seeds", [1, 2])
 def test_a_replay_buffer_subclasss_own_state_goes_through_a_checkpoint(num_seeds, tmp_path):
     """Its priorities, largest priority and an array of its own go into each seed's checkpoint (safely loadable) and
-    come back on resume; an attribute a checkpoint cannot hold is refused in one line."""
+    come back on resume (a NumPy number as a number); an attribute a checkpoint cannot hold is refused in one line,
+    unless the subclass writes its own state_dict."""
     rb = Prioritized(8, 3, 1, num_seeds, CPU)
     for t in range(5):
         rb.add(
@@ -1523,7 +1550,7 @@ def test_a_replay_buffer_subclasss_own_state_goes_through_a_checkpoint(num_seeds
         )
         rb.priorities[:, t] = torch.arange(num_seeds) + t
         rb.visits[:, t] = t
-    rb.max_priority = 7.5
+    rb.max_priority = np.float32(7.5)  # an array's max()
     parts = {"buffer": rb}
     state = {"buffer": rb.state_dict()}
     shares = split_seeds(
@@ -1540,6 +1567,19 @@ def test_a_replay_buffer_subclasss_own_state_goes_through_a_checkpoint(num_seeds
     rb.sum_tree = object()
     with pytest.raises(TypeError, match=r"^Prioritized.sum_tree is a object, which a checkpoint of the buffer cannot hold"):
         rb.state_dict()
+    treed = WithATree(8, 3, 1, num_seeds, CPU)
+    treed.tree.total = 3.0
+    again = WithATree(8, 3, 1, num_seeds, CPU)
+    again.load_state_dict(torch.load(io_of(treed.state_dict()), weights_only=True))
+    assert again.tree.total == 3.0 and isinstance(again.tree, types.SimpleNamespace)
+
+
+def io_of(state):
+    """A state as torch.save writes it, to load back."""
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    buffer.seek(0)
+    return buffer
 
 
 class Scale(nn.Module):
@@ -1554,8 +1594,9 @@ class Scale(nn.Module):
 @pytest.mark.parametrize("seeds", [[4], [4, 5, 6]], ids=["one seed", "three seeds"])
 def test_per_seed_takes_keywords_and_cuts_tensors_in_lists_and_dicts(seeds):
     """Arguments by keyword are taken as by position (their tensors cut per seed, their networks swapped); tensors in
-    a dict or a list are cut per seed as in a tuple; a NamedTuple's number is the seeds' own. A keyword-only tensor,
-    and an object holding a tensor, which per_seed would not cut, stop in one line."""
+    a dict or a list are cut per seed as in a tuple; a NamedTuple's number, and an object holding a tensor the seeds
+    share, are the seeds' own. A keyword-only tensor, and with several seeds an object holding each seed's tensor,
+    which per_seed would not cut, stop in one line."""
     torch.manual_seed(seeds[0])
     (net,) = stack_seeds(lambda: [Scale()], seeds, CPU)
     x = torch.randn(len(seeds), 5, 3)
@@ -1578,12 +1619,20 @@ def test_per_seed_takes_keywords_and_cuts_tensors_in_lists_and_dicts(seeds):
     with pytest.raises(TypeError, match=r"^per_seed\(Scale\): its keyword-only argument `shift` holds a tensor"):
         per_seed(net)(x, shift=x[..., :1])
 
+    def with_default(x, scale=2.0, net=None):  # a default skipped, the network by keyword
+        return net(x, scale, shift=0.0)
+
+    assert torch.equal(per_seed(with_default)(x, net=net), per_seed(net)(x, 2.0, shift=0.0))
+
     @dataclasses.dataclass
     class Holder:
         x: torch.Tensor
 
-    with pytest.raises(TypeError, match=r"^per_seed\(<lambda>\): argument 1 is a Holder holding a tensor \(`x`\)"):
-        per_seed(lambda h, net: net(h.x, shift=0.0))(Holder(x), net)
+    shared = Holder(torch.ones(2))  # a tensor the seeds share, in an object: passed whole
+    assert torch.equal(per_seed(lambda x, h, net: net(x, shift=0.0) * h.x)(x, shared, net), per_seed(net)(x, shift=0.0))
+    if len(seeds) > 1:  # each seed's tensor in an object, which per_seed would not cut
+        with pytest.raises(TypeError, match=r"^per_seed\(<lambda>\): argument 1 is a Holder holding `x`, a tensor \[3, "):
+            per_seed(lambda h, net: net(h.x, shift=0.0))(Holder(x), net)
 
 
 def test_what_run_log_and_run_evaluate_cannot_take_stops_in_one_line(run_of):
