@@ -2,6 +2,7 @@
 tests/test_many_seeds.py): it reproduces the script's own last evaluation, and bad input gets one line."""
 
 import os
+import re
 import subprocess
 import sys
 
@@ -86,3 +87,12 @@ def test_bad_input_gets_one_line(tmp_path, monkeypatch):
     done = run_cli(*cases[-1][0], cwd=tmp_path)  # and once on the command line: one line on stderr, exit status 1
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and len(lines) == 1 and lines[0].startswith("error: ") and cases[-1][1] in lines[0]
+    td3 = load("td3")
+
+    class ForkedActor(td3.Actor):  # a fork's actor that takes one more argument
+        def __init__(self, obs_dim, action_space, activation):
+            super().__init__(obs_dim, action_space)
+
+    monkeypatch.setattr(td3, "Actor", ForkedActor)
+    with pytest.raises(SystemExit, match=re.escape("td3's networks are not built as tools/evaluate.py builds them")):
+        evaluate.main([str(renamed), "--algo", "td3", "--env-id", "Pendulum-v1"])

@@ -75,6 +75,11 @@ def load_policy(script, algo: str, model_path: str, env):
         actor.load_state_dict(saved["actor"])
     except (RuntimeError, KeyError) as e:  # another algorithm's or another task's model
         fail(f"{model_path!r} does not fit {algo} on this task ({type(e).__name__}: {str(e).splitlines()[0]})")
+    except TypeError as e:  # a fork whose networks take other arguments
+        fail(
+            f"{algo}'s networks are not built as tools/evaluate.py builds them (Actor(obs_dim, action_space); Agent(obs_dim, "
+            f"action_dim)): {str(e).splitlines()[0]}; build its policy in load_policy as the script's main does"
+        )
     # SAC's and REDQ's squashed mean action, TD3's and OPARL's (pessimistic) actor; per_seed runs it on one
     # observation, as the scripts' one-seed evaluations do
     act = getattr(actor, "deterministic_action", actor)
