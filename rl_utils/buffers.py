@@ -53,12 +53,14 @@ class ReplayBuffer:
     """Each seed's transitions in one preallocated [num_seeds, capacity, fields] tensor: one row per seed per add, one
     gather per batch, each seed's batch drawn from its own transitions."""
 
-    FIELDS = ("capacity", "pos", "size", "num_seeds", "widths", "storage")  # a subclass's own are checkpointed too
+    FIELDS = ("capacity", "pos", "size", "num_seeds", "widths", "storage", "ends", "added_at")  # a subclass's: saved too
 
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, num_seeds: int, device: torch.device):
         self.capacity, self.pos, self.size, self.num_seeds = capacity, 0, 0, num_seeds
         self.widths = [obs_dim, action_dim, obs_dim, 1, 1]  # the fields of `Batch`, in order
         self.storage = torch.zeros((num_seeds, capacity, sum(self.widths)), dtype=torch.float32, device=device)
+        self.ends = None  # where the last add stored an episode's end as not terminated: (rows, next_obs there)
+        self.added_at = None  # env_layer.steps_taken at the last add
 
     def add(self, obs, next_obs, actions, rewards, terminations):
         """One transition per seed, in CleanRL's order: obs and next_obs [num_seeds, obs_dim], actions [num_seeds,
@@ -74,11 +76,45 @@ class ReplayBuffer:
                     "the order is add(obs, next_obs, actions, rewards, terminations), each with a leading seeds dimension",
                 )
         check_what_is_stored(next_obs, terminations)
+        self.check_the_last_end(obs)
         scalars = np.stack([rewards, terminations], -1)
         row = np.concatenate([obs, actions, next_obs, scalars], -1, dtype=np.float32)
         self.storage[:, self.pos] = torch.from_numpy(row)
+        self.remember_the_ends(next_obs, np.asarray(terminations))
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+
+    def check_the_last_end(self, obs):
+        """A next_obs computed from envs.step's (normalised: (next_obs - mean) / std) is not found by value; but where
+        an episode ended, its row is the one the next step's obs has, computed from the same first observation of the
+        next episode: refused at that next add, one step late. Computed from infos["real_next_obs"], the two differ
+        (where the observation the step led to is not the next episode's first one, which remember_the_ends keeps)."""
+        ends, self.ends = self.ends, None
+        if ends is None or np.shape(obs)[0] != self.num_seeds:
+            return
+        same = [row for row, kept in zip(*ends) if np.array_equal(np.asarray(obs[row], dtype=np.float32), kept)]
+        if same:
+            raise refusal(
+                ValueError,
+                f"ReplayBuffer.add: the next_obs stored for seed index {same[0]} where its episode ended (the add before "
+                "this one) is this add's obs, made from the next episode's first observation: computed from envs.step's "
+                'next_obs (normalised, say), its target would bootstrap from it; compute it from infos["real_next_obs"], '
+                "the observation the step led to",
+            )
+
+    def remember_the_ends(self, next_obs, terminations):
+        """The rows of next_obs just stored where the latest envs.step ended an episode, stored as not terminated, and
+        whose observation the step led to is not the next episode's first: check_the_last_end's. Only for a step
+        taken since this buffer's add before (the record is of this transition's step, not of an earlier one)."""
+        ends, before, self.added_at = env_layer.latest_episode_ends, self.added_at, env_layer.steps_taken
+        if ends is None or before is None or ends.step <= before or np.shape(next_obs) != ends.shape:
+            return
+        kept = [
+            (row, np.asarray(next_obs[row], dtype=np.float32))
+            for row, first, real in zip(ends.rows, ends.first_observations, ends.real_next_observations)
+            if row < self.num_seeds and terminations[row] == 0 and not np.array_equal(first, real)
+        ]
+        self.ends = tuple(zip(*kept)) if kept else None
 
     def sample(self, *shape: int) -> Batch:
         """Transitions drawn uniformly with replacement, for each seed a batch of this shape: `sample(256)` gives

@@ -96,9 +96,11 @@ class EpisodeEnds(NamedTuple):
     rows: np.ndarray
     first_observations: np.ndarray
     real_next_observations: np.ndarray
+    step: int  # steps_taken at that step
 
 
 latest_episode_ends: Optional[EpisodeEnds] = None
+steps_taken = 0  # SeedEnvs.step calls in the process: which step a record is of
 
 # with several seeds, the steps of SeedEnvs between two looks at Python's and NumPy's global generators
 DRAWS_EVERY = 100
@@ -137,7 +139,7 @@ class SeedEnvs:
     def step(self, actions: np.ndarray):
         """Each env steps with its seed's action. Returns next_obs, rewards, terminations, truncations (each
         [num_seeds, ...]) and infos: "real_next_obs", and "episode" (each env's episode statistics, or None)."""
-        global latest_episode_ends
+        global latest_episode_ends, steps_taken
         check_actions("SeedEnvs.step: actions", actions, len(self.envs), self.action_space, SEED_ENVS_HINT)
         self.watch_draws()
         next_obs, rewards, terminations, truncations, infos = zip(*(env.step(a) for env, a in zip(self.envs, actions)))
@@ -146,10 +148,11 @@ class SeedEnvs:
         real_next_obs = marked(np.stack(next_obs), cut)
         next_obs = [env.reset()[0] if done else obs for env, obs, done in zip(self.envs, next_obs, ended)]
         next_obs = marked(np.stack(next_obs), cut)
-        latest_episode_ends = None
+        latest_episode_ends, steps_taken = None, steps_taken + 1
         if ended.any():
             rows = np.flatnonzero(ended)
-            latest_episode_ends = EpisodeEnds(next_obs.shape, rows, np.array(next_obs[rows]), np.array(real_next_obs[rows]))
+            first, real = np.array(next_obs[rows]), np.array(real_next_obs[rows])
+            latest_episode_ends = EpisodeEnds(next_obs.shape, rows, first, real, steps_taken)
         episodes = [info.get("episode") if done else None for info, done in zip(infos, ended)]
         infos = {"real_next_obs": real_next_obs, "episode": episodes}
         return next_obs, np.array(rewards), terminations, truncations, infos

@@ -1673,3 +1673,33 @@ def test_save_model_cuts_an_objects_state_per_seed():
     saved = [model_of_seed({"stats": stats}, k, 3)["stats"] for k in range(3)]
     assert [s["mean"].tolist() for s in saved] == [[[0.0, 1.0]], [[2.0, 3.0]], [[4.0, 5.0]]]
     assert all(s["count"] == 4 for s in saved)
+
+
+@pytest.mark.parametrize("num_seeds", [1, 2])
+def test_a_normalised_next_obs_made_from_the_next_episodes_first_observation_stops_at_the_next_add(num_seeds):
+    """A fork that stores normalised observations, (x - mean) / std, computed from envs.step's next_obs: where the
+    time limit cut an episode, the row stored is the next episode's first observation, normalised, which no value
+    check finds; it is the next add's obs, so that add stops, naming the seed and the fix. Normalised from
+    infos["real_next_obs"], the same run stores every step."""
+    mean, std = np.array([0.1, -0.2, 0.3]), np.array([0.5, 0.6, 0.7])
+
+    def run(from_real: bool, steps=210):
+        envs = SeedEnvs("Pendulum-v1", [1, 2][:num_seeds])
+        rb = ReplayBuffer(300, envs.obs_dim, envs.action_dim, num_seeds, CPU)
+        obs = (envs.reset() - mean) / std
+        for _ in range(steps):
+            next_obs, rewards, terminations, truncations, infos = envs.step(envs.sample_actions())
+            stored = (infos["real_next_obs"] if from_real else next_obs) - mean
+            rb.add(obs, stored / std, envs.sample_actions(), rewards, terminations)
+            obs = (next_obs - mean) / std
+        envs.close()
+        return rb
+
+    assert run(from_real=True).size == 210
+    with pytest.raises(ValueError) as refused:
+        run(from_real=False)
+    assert str(refused.value).startswith(
+        "ReplayBuffer.add: the next_obs stored for seed index 0 where its episode ended (the add before this one) is "
+        "this add's obs, made from the next episode's first observation"
+    )
+    assert refused.traceback[-1].locals.get("self").size == 200  # the add of step 200, right after the cut at step 199
