@@ -80,7 +80,7 @@ class ReplayBuffer:
         scalars = np.stack([rewards, terminations], -1)
         row = np.concatenate([obs, actions, next_obs, scalars], -1, dtype=np.float32)
         self.storage[:, self.pos] = torch.from_numpy(row)
-        self.remember_the_ends(next_obs, np.asarray(terminations))
+        self.remember_the_ends(obs, next_obs, rewards, np.asarray(terminations))
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
@@ -102,17 +102,23 @@ class ReplayBuffer:
                 "the observation the step led to",
             )
 
-    def remember_the_ends(self, next_obs, terminations):
+    def remember_the_ends(self, obs, next_obs, rewards, terminations):
         """The rows of next_obs just stored where the latest envs.step ended an episode, stored as not terminated, and
-        whose observation the step led to is not the next episode's first: check_the_last_end's. Only for a step
-        taken since this buffer's add before (the record is of this transition's step, not of an earlier one)."""
+        whose observation the step led to is not the next episode's first: check_the_last_end's. Only for the
+        transition of that step (a step taken since this buffer's add before, whose rewards these are; not one
+        added a step late, nor another loop's envs), and where the row says something (its obs and next_obs differ)."""
         ends, before, self.added_at = env_layer.latest_episode_ends, self.added_at, env_layer.steps_taken
         if ends is None or before is None or ends.step <= before or np.shape(next_obs) != ends.shape:
+            return
+        rewards = np.asarray(rewards, dtype=np.float32)
+        if not np.array_equal(rewards, ends.rewards):
             return
         kept = [
             (row, np.asarray(next_obs[row], dtype=np.float32))
             for row, first, real in zip(ends.rows, ends.first_observations, ends.real_next_observations)
-            if row < self.num_seeds and terminations[row] == 0 and not np.array_equal(first, real)
+            if terminations[row] == 0
+            and not np.array_equal(first, real)
+            and not np.array_equal(np.asarray(obs[row], dtype=np.float32), np.asarray(next_obs[row], dtype=np.float32))
         ]
         self.ends = tuple(zip(*kept)) if kept else None
 

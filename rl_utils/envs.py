@@ -97,6 +97,7 @@ class EpisodeEnds(NamedTuple):
     first_observations: np.ndarray
     real_next_observations: np.ndarray
     step: int  # steps_taken at that step
+    rewards: np.ndarray  # every seed's, float32: an add of this step's transition stores them
 
 
 latest_episode_ends: Optional[EpisodeEnds] = None
@@ -152,7 +153,8 @@ class SeedEnvs:
         if ended.any():
             rows = np.flatnonzero(ended)
             first, real = np.array(next_obs[rows]), np.array(real_next_obs[rows])
-            latest_episode_ends = EpisodeEnds(next_obs.shape, rows, first, real, steps_taken)
+            rewards_now = np.asarray(rewards, dtype=np.float32)
+            latest_episode_ends = EpisodeEnds(next_obs.shape, rows, first, real, steps_taken, rewards_now)
         episodes = [info.get("episode") if done else None for info, done in zip(infos, ended)]
         infos = {"real_next_obs": real_next_obs, "episode": episodes}
         return next_obs, np.array(rewards), terminations, truncations, infos

@@ -1703,3 +1703,47 @@ def test_a_normalised_next_obs_made_from_the_next_episodes_first_observation_sto
         "this add's obs, made from the next episode's first observation"
     )
     assert refused.traceback[-1].locals.get("self").size == 200  # the add of step 200, right after the cut at step 199
+
+
+def test_correct_loops_that_store_past_an_episode_end_are_not_refused_by_the_next_add_check():
+    """The check of a normalised next_obs reads the latest envs.step's record: it holds only for an add of that step's
+    transition. A transition added a step late, a second loop's envs stepped between (its episode ending), an
+    evaluation's SeedEnvs stepped between the step and the add, and observations that carry nothing (all zeros)
+    store every step."""
+    steps = 410  # past the time limit's cuts at steps 199 and 399
+
+    def a_loop(envs):
+        obs = envs.reset()
+        while True:
+            next_obs, rewards, terminations, _, infos = envs.step(envs.sample_actions())
+            yield obs, np.asarray(infos["real_next_obs"]), envs.sample_actions(), rewards, terminations
+            obs = next_obs
+
+    def buffer():
+        return ReplayBuffer(steps, 3, 1, 1, CPU)
+
+    late, pending, envs = buffer(), None, SeedEnvs("Pendulum-v1", [1])
+    for transition, _ in zip(a_loop(envs), range(steps)):
+        if pending is not None:
+            late.add(*pending)  # a step late
+        pending = transition
+    first, second = buffer(), buffer()
+    first_loop, second_loop = a_loop(SeedEnvs("Pendulum-v1", [1])), a_loop(SeedEnvs("Pendulum-v1", [2]))
+    for _ in range(50):
+        next(first_loop)  # the second loop's episodes end 50 steps after the first's
+    for _ in range(steps - 50):
+        one, two = next(first_loop), next(second_loop)
+        first.add(*one)
+        second.add(*two)
+    evaluated, evaluation = buffer(), SeedEnvs("Pendulum-v1", [101])
+    for t, transition in zip(range(steps), a_loop(SeedEnvs("Pendulum-v1", [1]))):
+        if t % 150 == 0:  # a whole evaluation episode between the step and the add
+            evaluation.reset()
+            for _ in range(200):
+                evaluation.step(evaluation.sample_actions())
+        evaluated.add(*transition)
+    blind = buffer()
+    for transition, _ in zip(a_loop(SeedEnvs("Pendulum-v1", [1])), range(steps)):
+        obs, next_obs, actions, rewards, terminations = transition
+        blind.add(np.zeros_like(obs), np.zeros_like(next_obs), actions, rewards, terminations)
+    assert [rb.size for rb in (late, first, second, evaluated, blind)] == [steps - 1, steps - 50, steps - 50, steps, steps]
