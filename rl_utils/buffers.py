@@ -18,7 +18,7 @@ class Batch(NamedTuple):
     terminations: torch.Tensor
 
 
-def check_what_is_stored(next_obs, terminations):
+def check_what_is_stored(next_obs, terminations, time_limits_end_episodes=False):
     """The two CleanRL-era slips. Storing the next_obs `SeedEnvs.step` returned, whose rows where an episode ended are
     the next episode's first observation: refused where such a row is stored as not terminated (its target would
     bootstrap from it), found by value in any array against the latest step's record. And storing `terminations |
@@ -38,14 +38,14 @@ def check_what_is_stored(next_obs, terminations):
                     "terminated: its target would bootstrap from it; store the observation the step led to, "
                     'infos["real_next_obs"]',
                 )
-    cut = getattr(next_obs, "truncated", None)
+    cut = None if time_limits_end_episodes else getattr(next_obs, "truncated", None)
     if cut is not None and (stopped := cut & (ended != 0)).any():
         raise refusal(
             ValueError,
             f"ReplayBuffer.add: terminations is 1 for seed index {int(stopped.argmax())}, whose episode its time limit "
             "cut (truncated, not terminated): its target must bootstrap from the next observation; store the "
             "terminations envs.step returned, not terminations | truncations (a fork that means a time limit to end "
-            'its episodes stores np.asarray(infos["real_next_obs"]), without the mark)',
+            "its episodes sets rb.time_limits_end_episodes = True)",
         )
 
 
@@ -53,7 +53,8 @@ class ReplayBuffer:
     """Each seed's transitions in one preallocated [num_seeds, capacity, fields] tensor: one row per seed per add, one
     gather per batch, each seed's batch drawn from its own transitions."""
 
-    FIELDS = ("capacity", "pos", "size", "num_seeds", "widths", "storage", "ends", "added_at")  # a subclass's: saved too
+    # the base's own attributes; a subclass's others go into state_dict()
+    FIELDS = ("capacity", "pos", "size", "num_seeds", "widths", "storage", "ends", "added_at", "time_limits_end_episodes")
 
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, num_seeds: int, device: torch.device):
         self.capacity, self.pos, self.size, self.num_seeds = capacity, 0, 0, num_seeds
@@ -61,6 +62,7 @@ class ReplayBuffer:
         self.storage = torch.zeros((num_seeds, capacity, sum(self.widths)), dtype=torch.float32, device=device)
         self.ends = None  # where the last add stored an episode's end as not terminated: (rows, next_obs there)
         self.added_at = None  # env_layer.steps_taken at the last add
+        self.time_limits_end_episodes = False  # a fork that stores terminations | truncations on purpose sets it
 
     def add(self, obs, next_obs, actions, rewards, terminations):
         """One transition per seed, in CleanRL's order: obs and next_obs [num_seeds, obs_dim], actions [num_seeds,
@@ -75,7 +77,8 @@ class ReplayBuffer:
                     f"ReplayBuffer.add: {name} has shape {list(np.shape(value))}, not {[self.num_seeds, *shapes[name]]}; "
                     "the order is add(obs, next_obs, actions, rewards, terminations), each with a leading seeds dimension",
                 )
-        check_what_is_stored(next_obs, terminations)
+        check_what_is_stored(next_obs, terminations, self.time_limits_end_episodes)
+        self.check_time_limits(next_obs, rewards, terminations)
         self.check_the_last_end(obs)
         scalars = np.stack([rewards, terminations], -1)
         row = np.concatenate([obs, actions, next_obs, scalars], -1, dtype=np.float32)
@@ -83,6 +86,33 @@ class ReplayBuffer:
         self.remember_the_ends(obs, next_obs, rewards, np.asarray(terminations))
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+
+    def of_the_latest_step(self, next_obs, rewards):
+        """The latest envs.step's record of ended episodes, where this add is of that step's transition (a step taken
+        since this buffer's add before, whose rewards these are); else None."""
+        ends = env_layer.latest_episode_ends
+        if ends is None or self.added_at is None or ends.step <= self.added_at or np.shape(next_obs) != ends.shape:
+            return None
+        return ends if np.array_equal(np.asarray(rewards, dtype=np.float32), ends.rewards) else None
+
+    def check_time_limits(self, next_obs, rewards, terminations):
+        """`terminations | truncations` stored with observations the mark does not follow (computed: normalised):
+        found by the latest step's record instead, where the next_obs row is not the observation the step led to
+        as it is (np.asarray(infos["real_next_obs"]) is the way to mean it). A fork that means a time limit to end
+        its episodes with computed observations sets `time_limits_end_episodes`."""
+        ends = self.of_the_latest_step(next_obs, rewards)
+        if ends is None or getattr(next_obs, "truncated", None) is not None or self.time_limits_end_episodes:
+            return
+        for row, real, cut in zip(ends.rows, ends.real_next_observations, ends.cut):
+            stored = np.asarray(next_obs[row], dtype=np.float32)
+            if cut and terminations[row] != 0 and not np.array_equal(stored, real.astype(np.float32)):
+                raise refusal(
+                    ValueError,
+                    f"ReplayBuffer.add: terminations is 1 for seed index {row}, whose episode its time limit cut "
+                    "(truncated, not terminated): its target must bootstrap from the next observation; store the "
+                    "terminations envs.step returned, not terminations | truncations (a fork that means a time limit "
+                    "to end its episodes sets rb.time_limits_end_episodes = True)",
+                )
 
     def check_the_last_end(self, obs):
         """A next_obs computed from envs.step's (normalised: (next_obs - mean) / std) is not found by value; but where
@@ -107,11 +137,8 @@ class ReplayBuffer:
         whose observation the step led to is not the next episode's first: check_the_last_end's. Only for the
         transition of that step (a step taken since this buffer's add before, whose rewards these are; not one
         added a step late, nor another loop's envs), and where the row says something (its obs and next_obs differ)."""
-        ends, before, self.added_at = env_layer.latest_episode_ends, self.added_at, env_layer.steps_taken
-        if ends is None or before is None or ends.step <= before or np.shape(next_obs) != ends.shape:
-            return
-        rewards = np.asarray(rewards, dtype=np.float32)
-        if not np.array_equal(rewards, ends.rewards):
+        ends, self.added_at = self.of_the_latest_step(next_obs, rewards), env_layer.steps_taken
+        if ends is None:
             return
         kept = [
             (row, np.asarray(next_obs[row], dtype=np.float32))

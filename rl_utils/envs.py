@@ -98,6 +98,7 @@ class EpisodeEnds(NamedTuple):
     real_next_observations: np.ndarray
     step: int  # steps_taken at that step
     rewards: np.ndarray  # every seed's, float32: an add of this step's transition stores them
+    cut: np.ndarray  # for each of `rows`, whether its time limit cut the episode (truncated, not terminated)
 
 
 latest_episode_ends: Optional[EpisodeEnds] = None
@@ -154,7 +155,7 @@ class SeedEnvs:
             rows = np.flatnonzero(ended)
             first, real = np.array(next_obs[rows]), np.array(real_next_obs[rows])
             rewards_now = np.asarray(rewards, dtype=np.float32)
-            latest_episode_ends = EpisodeEnds(next_obs.shape, rows, first, real, steps_taken, rewards_now)
+            latest_episode_ends = EpisodeEnds(next_obs.shape, rows, first, real, steps_taken, rewards_now, cut[rows])
         episodes = [info.get("episode") if done else None for info, done in zip(infos, ended)]
         infos = {"real_next_obs": real_next_obs, "episode": episodes}
         return next_obs, np.array(rewards), terminations, truncations, infos

@@ -861,8 +861,8 @@ def test_a_scheduler_given_to_run_start_resumes_where_its_schedule_was(tmp_path)
             'rb.add(obs, infos["real_next_obs"], actions, rewards, np.logical_or(terminations, truncations))',
             "ReplayBuffer.add: terminations is 1 for seed index 0, whose episode its time limit cut (truncated, not "
             "terminated): its target must bootstrap from the next observation; store the terminations envs.step "
-            "returned, not terminations | truncations (a fork that means a time limit to end its episodes stores "
-            'np.asarray(infos["real_next_obs"]), without the mark)',
+            "returned, not terminations | truncations (a fork that means a time limit to end its episodes sets "
+            "rb.time_limits_end_episodes = True)",
         ),
         (
             "real_next_obs = next_obs.copy()\n"
@@ -872,8 +872,8 @@ def test_a_scheduler_given_to_run_start_resumes_where_its_schedule_was(tmp_path)
             "rb.add(obs, real_next_obs, actions, rewards, terminations | truncations)",
             "ReplayBuffer.add: terminations is 1 for seed index 0, whose episode its time limit cut (truncated, not "
             "terminated): its target must bootstrap from the next observation; store the terminations envs.step "
-            "returned, not terminations | truncations (a fork that means a time limit to end its episodes stores "
-            'np.asarray(infos["real_next_obs"]), without the mark)',
+            "returned, not terminations | truncations (a fork that means a time limit to end its episodes sets "
+            "rb.time_limits_end_episodes = True)",
         ),
     ],
     ids=["next_obs", "dones", "fixed-up copy and dones"],
@@ -1747,3 +1747,36 @@ def test_correct_loops_that_store_past_an_episode_end_are_not_refused_by_the_nex
         obs, next_obs, actions, rewards, terminations = transition
         blind.add(np.zeros_like(obs), np.zeros_like(next_obs), actions, rewards, terminations)
     assert [rb.size for rb in (late, first, second, evaluated, blind)] == [steps - 1, steps - 50, steps - 50, steps, steps]
+
+
+@pytest.mark.parametrize("num_seeds", [1, 2])
+def test_terminations_or_truncations_stored_with_normalised_observations_stop_at_the_time_limit(num_seeds):
+    """The mark that finds `terminations | truncations` does not follow computed (normalised) observations: the
+    latest step's record does, at the add of the step the time limit cut (199); the mark, on infos["real_next_obs"]
+    stored as it is. A fork that means it (rb.time_limits_end_episodes) stores either."""
+    mean, std = np.array([0.1, -0.2, 0.3]), np.array([0.5, 0.6, 0.7])
+
+    def run(means_it=False, normalised=True, steps=210):
+        envs = SeedEnvs("Pendulum-v1", [1, 2][:num_seeds])
+        rb = ReplayBuffer(300, envs.obs_dim, envs.action_dim, num_seeds, CPU)
+        rb.time_limits_end_episodes = means_it
+        obs = envs.reset()
+        for _ in range(steps):
+            next_obs, rewards, terminations, truncations, infos = envs.step(envs.sample_actions())
+            real = infos["real_next_obs"]
+            stored = (real - mean) / std if normalised else real
+            rb.add(obs, stored, envs.sample_actions(), rewards, terminations | truncations)
+            obs = next_obs
+        envs.close()
+        return rb
+
+    for normalised in (True, False):
+        with pytest.raises(ValueError) as refused:
+            run(normalised=normalised)
+        assert str(refused.value).startswith(
+            "ReplayBuffer.add: terminations is 1 for seed index 0, whose episode its time limit cut (truncated, not "
+            "terminated)"
+        )
+        assert str(refused.value).endswith("a time limit to end its episodes sets rb.time_limits_end_episodes = True)")
+        assert not normalised or refused.traceback[-1].locals["self"].size == 199  # at the add of step 199
+        assert run(means_it=True, normalised=normalised).size == 210
