@@ -67,6 +67,7 @@ class Run:
         if self.finished:
             print(f"{', '.join(self.run_dirs)} had already finished its {args.total_timesteps} steps")
         self.guarded = 0  # how many run.stop_on_nan blocks are open
+        self.evaluation_due = None  # on --resume, the step whose evaluation the first step must make (start)
         self.video_folders = [f"videos/{os.path.basename(d)}" if args.capture_video else None for d in self.run_dirs]
         if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
             os.environ.setdefault("MUJOCO_GL", "disable")
@@ -122,6 +123,7 @@ class Run:
         self.check_stacked_for_the_seeds()
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
         self.check_state_held()
+        self.evaluation_due = self.next_evaluation() if self.checkpoints else None
         observations = None
         if self.checkpoints:
             observations = ckpt.restore(join_seeds(self.checkpoints, parts), self.env_list, nets, optimizers, parts)
@@ -133,6 +135,16 @@ class Run:
 
     def evaluate(self, step: int, returns: np.ndarray):
         self.logs.evaluate(step, returns)
+
+    def next_evaluation(self):
+        """The step a resumed run evaluates first if its record's evaluations, every --eval-frequency steps (or their
+        one spacing), put one at the step it resumes at; else None."""
+        steps = [step for step, _ in self.eval_returns[0]]
+        gaps = {b - a for a, b in zip(steps, steps[1:])}
+        every = getattr(self.args, "eval_frequency", None) or (gaps.pop() if len(gaps) == 1 else None)
+        if steps and every and gaps <= {every} and steps[-1] + every == self.start_step < self.args.total_timesteps:
+            return self.start_step
+        return None
 
     def log(self, logs: dict, step: int):
         try:
@@ -261,6 +273,16 @@ class Run:
         checkpoint every --checkpoint-frequency steps (where `can_checkpoint`; the last one is finish()'s), and the
         check that main still holds the networks and optimizers `start` was given."""
         args = self.args
+        if self.evaluation_due is not None:  # the first step of a resumed run
+            due, self.evaluation_due = self.evaluation_due, None
+            if step == due and self.eval_returns[0][-1][0] != due:
+                fail(
+                    f"step {step} ended without its evaluation: the run resumed at step {step}, where its record's "
+                    f"evaluations, every {step - self.eval_returns[0][-1][0]} steps, put the next one, and the checkpoint it "
+                    "resumed from was written before that evaluation; one made after run.end_step (run.evaluate(step + 1, "
+                    "...)) is not made again by a resumed run, whose record would miss it: evaluate at the top of the step, "
+                    "as the scripts do (if global_step % args.eval_frequency == 0: run.evaluate(global_step, ...))"
+                )
         self.logs.step(step)
         now = self.caller.f_locals
         for name, x in self.bound.items():

@@ -1407,6 +1407,44 @@ def test_a_part_bound_anew_stops_the_run_at_that_step(run_of):
     run.logs.close()
 
 
+@pytest.mark.parametrize("where", ["top of the step", "after run.end_step"])
+def test_an_evaluation_moved_after_end_step_stops_the_resumed_run_that_would_miss_it(run_of, where):
+    """The checkpoint run.end_step writes after step 199 comes before an evaluation made after it (at step 200): a run
+    resumed from it at step 200 evaluates at 200 only at the top of the step. Made there, as the scripts make it, the
+    resumed run's record has every evaluation; made after run.end_step, the resumed run stops at the end of step 200,
+    before anything is written, where its record would miss that evaluation."""
+    flags = dict(total_timesteps=1000, eval_frequency=100, checkpoint_frequency=100)
+    top = where == "top of the step"
+
+    def steps(run, first, last):
+        for step in range(first, last):
+            if top and step % 100 == 0:
+                run.evaluate(step, np.zeros((1, 1)))
+            run.end_step(step)
+            if not top and (step + 1) % 100 == 0:
+                run.evaluate(step + 1, np.zeros((1, 1)))
+
+    run, envs = run_of(**flags)
+    run.start(envs, CPU, {}, {})
+    steps(run, 0, 250)  # killed at step 250
+    run.logs.close()
+    resumed, envs = run_of(resume="runs/r1", **flags)
+    resumed.start(envs, CPU, {}, {})
+    assert resumed.start_step == 200 and [s for s, _ in resumed.eval_returns[0]] == ([0, 100] if top else [100])
+    if top:
+        steps(resumed, 200, 301)
+        assert [s for s, _ in resumed.eval_returns[0]] == [0, 100, 200, 300]
+    else:
+        with pytest.raises(SystemExit) as refused:
+            steps(resumed, 200, 201)
+        assert str(refused.value).startswith(
+            "error: step 200 ended without its evaluation: the run resumed at step 200, where its record's evaluations, "
+            "every 100 steps, put the next one"
+        )
+        assert "evaluate at the top of the step" in str(refused.value)
+    resumed.logs.close()
+
+
 def test_with_several_seeds_a_network_not_built_by_stack_seeds_is_refused(run_of):
     """A bonus model built in plain PyTorch beside stacked networks is one network for every seed: it would train on
     all the seeds' data, and a checkpoint would cut its weights as if stacked. Refused at the start; one seed's is
