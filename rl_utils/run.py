@@ -228,6 +228,18 @@ class Run:
                     f"not hold it, and --resume would start it from its initial state; add it there "
                     f"(run.start(..., {part_name(name)}={name}))"
                 )
+        own = self.caller.f_globals.get("__name__")  # the script's own classes: a helper object (an OU noise)
+        for name, x in held(self.caller.f_locals):
+            if type(x).__module__ != own or id(x) in held_parts or isinstance(x, (type, torch.nn.Module)):
+                continue
+            for attribute, value in vars(x).items() if hasattr(x, "__dict__") else ():
+                if isinstance(value, ckpt.GENERATORS) and id(value) not in held_parts:
+                    fail(
+                        f"`{name}.{attribute}` ({type(value).__name__}), a random generator of the script's own, is not in "
+                        "run.start's parts: a checkpoint would not hold it, and --resume would start it again; add it "
+                        f"there (run.start(..., {part_name(f'{name}.{attribute}')}={name}.{attribute})), or draw from "
+                        "torch's generator, which checkpoints hold"
+                    )
         for name, optimizer in self.optimizers.items():
             if hasattr(optimizer.step, "_wrapped_by_lr_sched") and id(optimizer) not in held_optimizers:
                 fail(

@@ -796,7 +796,7 @@ def test_a_scheduler_found_by_the_optimizer_step_it_wraps_and_one_made_of_others
     def checked(parts, **names):
         run = Run.__new__(Run)
         run.args, run.parts = dataclasses.replace(td3.Args(), checkpoint_frequency=100), parts
-        run.optimizers, run.caller = {"q_optimizer": optimizer}, types.SimpleNamespace(f_locals=names)
+        run.optimizers, run.caller = {"q_optimizer": optimizer}, types.SimpleNamespace(f_locals=names, f_globals=globals())
         run.check_state_held()
 
     optimizer = torch.optim.Adam([nn.Parameter(torch.zeros(2))], lr=1e-3)
@@ -1377,6 +1377,27 @@ def test_state_in_a_list_is_refused_where_checkpoints_are_written(run_of):
     with pytest.raises(SystemExit, match=re.escape("add it there (run.start(..., noise_rngs_0=noise_rngs[0]))")):
         run.start(envs, CPU, {}, {})
     run.start(envs, CPU, {}, {}, noise_rngs_0=noise_rngs[0])
+    run.logs.close()
+
+
+def test_a_generator_inside_a_helper_object_main_holds_is_refused_unless_given(run_of):
+    """An OU noise of the fork's own class holds its generator in an attribute: left out of run.start's parts, --resume
+    would start it again. Found by a name and in a list, refused where checkpoints are written, until given."""
+    noise, noises = OUNoise(), [OUNoise()]
+    run, envs = run_of(checkpoint_frequency=0)
+    run.start(envs, CPU, {}, {})  # no checkpoints: nothing to hold
+    run.logs.close()
+    run, envs = run_of(checkpoint_frequency=100)
+    with pytest.raises(SystemExit) as refused:
+        run.start(envs, CPU, {}, {})
+    assert str(refused.value) == (
+        "error: `noise.rng` (Generator), a random generator of the script's own, is not in run.start's parts: a checkpoint "
+        "would not hold it, and --resume would start it again; add it there (run.start(..., noise_rng=noise.rng)), or "
+        "draw from torch's generator, which checkpoints hold"
+    )
+    with pytest.raises(SystemExit, match=re.escape("add it there (run.start(..., noises_0_rng=noises[0].rng))")):
+        run.start(envs, CPU, {}, {}, noise_rng=noise.rng)
+    run.start(envs, CPU, {}, {}, noise_rng=noise.rng, noises_0_rng=noises[0].rng)
     run.logs.close()
 
 
