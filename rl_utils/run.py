@@ -4,6 +4,7 @@ checkpoints and its saved model, as an ordinary single-seed run has them."""
 import contextlib
 import dataclasses
 import os
+import random
 import re
 import sys
 import time
@@ -27,6 +28,13 @@ def part_name(name: str) -> str:
     checkpoint's own keys."""
     name = re.sub(r"\W+", "_", name).strip("_")
     return f"my_{name}" if name in ckpt.OWN_KEYS else name
+
+
+def own_generator(x) -> bool:
+    """A random generator with a state of its own: not the process's global ones (Python's, NumPy's, torch's), which
+    every checkpoint holds, nor a random.SystemRandom, which has no state."""
+    is_global = any(x is g for g in (random._inst, np.random.mtrand._rand, torch.default_generator))
+    return isinstance(x, ckpt.GENERATORS) and not isinstance(x, random.SystemRandom) and not is_global
 
 
 def held(names: dict, depth: int = 2):
@@ -137,12 +145,11 @@ class Run:
         self.logs.evaluate(step, returns)
 
     def next_evaluation(self):
-        """The step a resumed run evaluates first if its record's evaluations, every --eval-frequency steps (or their
-        one spacing), put one at the step it resumes at; else None."""
+        """The step a resumed run evaluates first if its record's evaluations, two or more evenly spaced, put one at the
+        step it resumes at; else None."""
         steps = [step for step, _ in self.eval_returns[0]]
         gaps = {b - a for a, b in zip(steps, steps[1:])}
-        every = getattr(self.args, "eval_frequency", None) or (gaps.pop() if len(gaps) == 1 else None)
-        if steps and every and gaps <= {every} and steps[-1] + every == self.start_step < self.args.total_timesteps:
+        if len(gaps) == 1 and steps[-1] + gaps.pop() == self.start_step < self.args.total_timesteps:
             return self.start_step
         return None
 
@@ -216,7 +223,7 @@ class Run:
                     "its schedule is, and --resume would start it again; add it there "
                     f"(run.start(..., {part_name(name)}={name}))"
                 )
-            if isinstance(x, ckpt.GENERATORS):
+            if own_generator(x):
                 fail(
                     f"`{name}` ({type(x).__name__}), a random generator of the script's own, is not in run.start's parts: a "
                     f"checkpoint would not hold it, and --resume would start it again; add it there (run.start(..., "
@@ -232,13 +239,15 @@ class Run:
         for name, x in held(self.caller.f_locals):
             if type(x).__module__ != own or id(x) in held_parts or isinstance(x, (type, torch.nn.Module)):
                 continue
-            for attribute, value in vars(x).items() if hasattr(x, "__dict__") else ():
-                if isinstance(value, ckpt.GENERATORS) and id(value) not in held_parts:
+            attributes = getattr(x, "__dict__", None)
+            for label, value in held(
+                {f"{name}.{k}": v for k, v in attributes.items()} if isinstance(attributes, dict) else {}, 1
+            ):
+                if own_generator(value) and id(value) not in held_parts:  # noise.rng, or noise.rngs[0]
                     fail(
-                        f"`{name}.{attribute}` ({type(value).__name__}), a random generator of the script's own, is not in "
-                        "run.start's parts: a checkpoint would not hold it, and --resume would start it again; add it "
-                        f"there (run.start(..., {part_name(f'{name}.{attribute}')}={name}.{attribute})), or draw from "
-                        "torch's generator, which checkpoints hold"
+                        f"`{label}` ({type(value).__name__}), a random generator of the script's own, is not in run.start's "
+                        "parts: a checkpoint would not hold it, and --resume would start it again; add it there "
+                        f"(run.start(..., {part_name(label)}={label})), or draw from torch's generator, which checkpoints hold"
                     )
         for name, optimizer in self.optimizers.items():
             if hasattr(optimizer.step, "_wrapped_by_lr_sched") and id(optimizer) not in held_optimizers:

@@ -1384,6 +1384,9 @@ def test_a_generator_inside_a_helper_object_main_holds_is_refused_unless_given(r
     """An OU noise of the fork's own class holds its generator in an attribute: left out of run.start's parts, --resume
     would start it again. Found by a name and in a list, refused where checkpoints are written, until given."""
     noise, noises = OUNoise(), [OUNoise()]
+    # no state of their own: the process's generators, which checkpoints hold, and an entropy source
+    system, global_torch, helper = random.SystemRandom(), torch.default_generator, OUNoise()
+    helper.rng, helper.rngs = np.random.mtrand._rand, [random.SystemRandom()]
     run, envs = run_of(checkpoint_frequency=0)
     run.start(envs, CPU, {}, {})  # no checkpoints: nothing to hold
     run.logs.close()
@@ -1397,8 +1400,14 @@ def test_a_generator_inside_a_helper_object_main_holds_is_refused_unless_given(r
     )
     with pytest.raises(SystemExit, match=re.escape("add it there (run.start(..., noises_0_rng=noises[0].rng))")):
         run.start(envs, CPU, {}, {}, noise_rng=noise.rng)
-    run.start(envs, CPU, {}, {}, noise_rng=noise.rng, noises_0_rng=noises[0].rng)
+    noises[0].rngs = {"actor": np.random.default_rng(4)}  # in a dict (or a list) the object holds
+    with pytest.raises(
+        SystemExit, match=re.escape("add it there (run.start(..., noises_0_rngs_actor=noises[0].rngs['actor']))")
+    ):
+        run.start(envs, CPU, {}, {}, noise_rng=noise.rng, noises_0_rng=noises[0].rng)
+    run.start(envs, CPU, {}, {}, noise_rng=noise.rng, noises_0_rng=noises[0].rng, noises_0_rngs=noises[0].rngs["actor"])
     run.logs.close()
+    del system, global_torch
 
 
 @pytest.mark.parametrize("part", [0.5, {"updates": 0}], ids=["a number", "a dict"])
@@ -1428,38 +1437,42 @@ def test_a_part_bound_anew_stops_the_run_at_that_step(run_of):
     run.logs.close()
 
 
-@pytest.mark.parametrize("where", ["top of the step", "after run.end_step"])
-def test_an_evaluation_moved_after_end_step_stops_the_resumed_run_that_would_miss_it(run_of, where):
-    """The checkpoint run.end_step writes after step 199 comes before an evaluation made after it (at step 200): a run
-    resumed from it at step 200 evaluates at 200 only at the top of the step. Made there, as the scripts make it, the
-    resumed run's record has every evaluation; made after run.end_step, the resumed run stops at the end of step 200,
-    before anything is written, where its record would miss that evaluation."""
+@pytest.mark.parametrize("where, every", [("top of the step", 100), ("after run.end_step", 100), ("top of the step", 250)])
+def test_an_evaluation_moved_after_end_step_stops_the_resumed_run_that_would_miss_it(run_of, where, every):
+    """The checkpoint run.end_step writes after step 299 comes before an evaluation made after it (at step 300): a run
+    resumed from it at step 300 evaluates at 300 only at the top of the step. Made there, as the scripts make it, the
+    resumed run's record has every evaluation; made after run.end_step, the resumed run stops at the end of step 300,
+    before anything is written, where its record (evaluations every 100 steps) would miss that evaluation. A fork's own
+    schedule (every 250 steps, --eval-frequency 100) is its own: resumed at step 100, its record (step 0) puts none
+    there."""
     flags = dict(total_timesteps=1000, eval_frequency=100, checkpoint_frequency=100)
     top = where == "top of the step"
 
     def steps(run, first, last):
         for step in range(first, last):
-            if top and step % 100 == 0:
+            if top and step % every == 0:
                 run.evaluate(step, np.zeros((1, 1)))
             run.end_step(step)
-            if not top and (step + 1) % 100 == 0:
+            if not top and (step + 1) % every == 0:
                 run.evaluate(step + 1, np.zeros((1, 1)))
 
     run, envs = run_of(**flags)
     run.start(envs, CPU, {}, {})
-    steps(run, 0, 250)  # killed at step 250
+    resume_at = 300 if every == 100 else 100
+    steps(run, 0, resume_at + 50)  # killed 50 steps after the checkpoint it resumes from
     run.logs.close()
     resumed, envs = run_of(resume="runs/r1", **flags)
     resumed.start(envs, CPU, {}, {})
-    assert resumed.start_step == 200 and [s for s, _ in resumed.eval_returns[0]] == ([0, 100] if top else [100])
+    made = {(True, 100): [0, 100, 200], (False, 100): [100, 200], (True, 250): [0]}[(top, every)]
+    assert resumed.start_step == resume_at and [s for s, _ in resumed.eval_returns[0]] == made
     if top:
-        steps(resumed, 200, 301)
-        assert [s for s, _ in resumed.eval_returns[0]] == [0, 100, 200, 300]
+        steps(resumed, resume_at, 501)
+        assert [s for s, _ in resumed.eval_returns[0]] == made + ([300, 400, 500] if every == 100 else [250, 500])
     else:
         with pytest.raises(SystemExit) as refused:
-            steps(resumed, 200, 201)
+            steps(resumed, 300, 301)
         assert str(refused.value).startswith(
-            "error: step 200 ended without its evaluation: the run resumed at step 200, where its record's evaluations, "
+            "error: step 300 ended without its evaluation: the run resumed at step 300, where its record's evaluations, "
             "every 100 steps, put the next one"
         )
         assert "evaluate at the top of the step" in str(refused.value)
