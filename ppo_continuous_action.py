@@ -368,7 +368,7 @@ def main(args: Args):
         run.end_step(global_step, can_checkpoint=obs is None)  # speed, progress bar; checkpoints between episodes
 
     run.evaluate(args.total_timesteps, evaluate(policy, [eval_env], [eval_seed], args.eval_episodes))
-    results = run.finish(save={"actor": agent, "normalizer": normalizer}, eval_envs=eval_env)
+    results = run.finish(save={"actor": agent, "normalizer": normalizer}, eval_envs=eval_env, policy=policy)
     return {**nets, **optimizers, "rollout": rollout, "normalizer": normalizer, **results}
 
 

@@ -344,7 +344,7 @@ def main(args: Args):
         run.end_step(global_step)  # training speed, progress bar, checkpoints
 
     run.evaluate(args.total_timesteps, evaluate(policy, eval_envs, eval_seeds, args.eval_episodes))
-    results = run.finish(save={"actor": actor, "qf": qf, "log_alpha": log_alpha}, eval_envs=eval_envs)
+    results = run.finish(save={"actor": actor, "qf": qf, "log_alpha": log_alpha}, eval_envs=eval_envs, policy=policy)
     return {**nets, **optimizers, "update": update, "rb": rb, "alpha": alpha, **results}
 
 

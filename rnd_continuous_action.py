@@ -513,7 +513,7 @@ def main(args: Args):
 
     run.evaluate(args.total_timesteps, evaluate(policy, [eval_env], [eval_seed], args.eval_episodes))
     saved = {"actor": agent, "normalizer": normalizer, "rnd": rnd_model}
-    results = run.finish(save=saved, eval_envs=eval_env)
+    results = run.finish(save=saved, eval_envs=eval_env, policy=policy)
     return {**nets, **optimizers, **parts, **results}
 
 

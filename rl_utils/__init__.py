@@ -6,7 +6,8 @@ draw other noise than single-seed runs) and says so where they are. One module a
                  script's own `check_args`)
     errors       a one-line stop on bad input (`fail`), and a refusal raised in a run that prints as one (`refusal`)
     envs         Gymnasium MuJoCo and DeepMind Control tasks as flat float32 envs (`make_env`), one per seed side
-                 by side (`SeedEnvs`), and the deterministic evaluation loop (`evaluate`)
+                 by side (`SeedEnvs`), the deterministic evaluation loop (`evaluate`), and --save-model's record of
+                 how the evaluated policy acts (`policy_probe`)
     buffers      the replay buffer of the off-policy scripts (`ReplayBuffer`, `Batch`)
     seeds        several seeds in one process (--num-seeds): one seed's networks stacked (`stack_seeds`), a function
                  written for one seed run for all of them at once (`per_seed`), each seed's cut of a checkpoint, and

@@ -7,6 +7,7 @@ from typing import NamedTuple, Optional
 
 import gymnasium as gym
 import numpy as np
+import torch
 
 from rl_utils.checkpoints import EpisodeRecord
 from rl_utils.errors import fail, refusal
@@ -195,6 +196,20 @@ def check_actions(who: str, actions, num_envs: int, space: gym.spaces.Box, hint:
         shape = "ragged"
     if shape != list(expected):
         raise refusal(ValueError, f"{who} have shape {shape}, not [num_seeds, action_dim] = {list(expected)}: {hint}")
+
+
+PROBE_SIZE = 16  # observations on which --save-model records the evaluated policy's actions
+
+
+def policy_probe(policy, observation_space, num_seeds: int) -> list:
+    """--save-model's record of how the evaluated policy acts, one per seed: {"probe": {"observations", "actions"}},
+    its actions on PROBE_SIZE fixed observations (standard normal draws of the task's observation shape, from a
+    generator of their own). tools/evaluate.py compares them with the actions of the policy it rebuilds."""
+    observations = np.random.default_rng(0).standard_normal((PROBE_SIZE, *observation_space.shape))
+    observations = observations.astype(observation_space.dtype)
+    with torch.no_grad():  # each observation given to every seed: actions [num_seeds, PROBE_SIZE, action_dim]
+        actions = np.stack([np.asarray(policy(np.stack([x] * num_seeds))) for x in observations], axis=1)
+    return [{"probe": {"observations": torch.as_tensor(observations), "actions": torch.as_tensor(a)}} for a in actions]
 
 
 def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:

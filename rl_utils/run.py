@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from rl_utils import checkpoints as ckpt
 from rl_utils.cli import script_of
-from rl_utils.envs import SeedEnvs
+from rl_utils.envs import SeedEnvs, policy_probe
 from rl_utils.errors import fail, refusal
 from rl_utils.logs import Logs
 from rl_utils.numerics import NonFiniteError
@@ -324,16 +324,26 @@ class Run:
             ckpt.write_checkpoints(self.run_dirs, self.state(step + 1))
             self.next_checkpoint = step + 1 + args.checkpoint_frequency
 
-    def finish(self, save: dict, eval_envs=None) -> dict:
-        """The last checkpoint, --save-model (each seed's cut of the `save` networks, tensors or objects), the envs and
-        logs closed. Returns the runs' folders and evaluations."""
+    def finish(self, save: dict, eval_envs=None, policy=None) -> dict:
+        """The last checkpoint, --save-model (each seed's cut of the `save` networks, tensors or objects, and how the
+        evaluated `policy` acts, for tools/evaluate.py to check the policy it rebuilds from them), the envs and logs
+        closed. Returns the runs' folders and evaluations."""
         args = self.args
         if args.checkpoint_frequency:
             ckpt.write_checkpoints(self.run_dirs, self.state(args.total_timesteps))
         if args.save_model:
+            n, probes = len(self.run_dirs), [{}] * len(self.run_dirs)
+            try:  # a policy that fails on the probe leaves it out: the model is what the run was for
+                probes = policy_probe(policy, self.env_list[0].observation_space, n) if policy is not None else probes
+            except Exception as e:
+                why = f"{type(e).__name__}: {(str(e).splitlines() or [''])[0]}"
+                tqdm.write(
+                    f"warning: --save-model leaves out the policy's probe ({why}); evaluate.py cannot check it",
+                    file=sys.stderr,
+                )
             for k, run_dir in enumerate(self.run_dirs):
                 model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
-                torch.save(model_of_seed(save, k, len(self.run_dirs)), model_path)
+                torch.save({**model_of_seed(save, k, n), **probes[k]}, model_path)
                 tqdm.write(f"model saved to {model_path}")
         for env in [*self.env_list, *(eval_envs if isinstance(eval_envs, SeedEnvs) else [eval_envs] if eval_envs else [])]:
             env.close()

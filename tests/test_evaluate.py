@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from conftest import REPO, SCRIPTS, load, small_args
 from test_end_to_end import VIDEO_ENV, rendering_works
@@ -31,8 +32,10 @@ def train_and_save(script: str, tmp_path, monkeypatch, env_id="Pendulum-v1") -> 
 def test_evaluating_a_saved_model_reproduces_the_scripts_last_evaluation(script, tmp_path, monkeypatch):
     model, last_eval = train_and_save(script, tmp_path, monkeypatch)
     # the training's evaluations: seed + 100, 2 episodes; the algorithm and task come from the path
-    returns = evaluate.main([model, "--seed", str(SEED + 100), "--episodes", "2"])
+    returns = evaluate.main([model, "--seed", str(SEED + 100), "--episodes", "2"])  # its probe passed (below)
     assert len(returns) == 2
+    probe = torch.load(model, weights_only=True)["probe"]  # how the evaluated policy acts, for evaluate.py to check
+    assert probe["observations"].shape == (16, 3) and probe["actions"].shape == (16, 1)
     assert returns.mean() == pytest.approx(last_eval, rel=1e-6)
     # another seed sees other start states
     assert evaluate.main([model, "--seed", str(SEED + 101), "--episodes", "2"]).mean() != pytest.approx(last_eval, rel=1e-6)
@@ -96,3 +99,49 @@ def test_bad_input_gets_one_line(tmp_path, monkeypatch):
     monkeypatch.setattr(td3, "Actor", ForkedActor)
     with pytest.raises(SystemExit, match=re.escape("td3's networks are not built as tools/evaluate.py builds them")):
         evaluate.main([str(renamed), "--algo", "td3", "--env-id", "Pendulum-v1"])
+
+
+@pytest.mark.parametrize("activation", [torch.relu, torch.tanh])
+def test_an_actor_that_acts_otherwise_than_the_trained_one_is_refused(activation, tmp_path, monkeypatch):
+    """A fork's flag that changes how its actor acts, not its weights' shapes (`--actor-activation`): the model was
+    trained with ReLU, and evaluate.py builds the actor with the defaults. With tanh's it stops in one line rather than
+    report another policy's return; with ReLU's, the same policy, it reproduces the last evaluation."""
+    td3 = load("td3")
+    model, last_eval = train_and_save("td3", tmp_path, monkeypatch)
+
+    class ForkedActor(td3.Actor):  # the hidden layers' activation a keyword, given by a flag in the fork's main
+        def __init__(self, obs_dim, action_space, activation=activation):
+            super().__init__(obs_dim, action_space)
+            self.activation = activation
+
+        def forward(self, x):
+            x = self.activation(self.fc2(self.activation(self.fc1(x))))
+            return torch.tanh(self.fc_mu(x)) * self.action_scale + self.action_bias
+
+    monkeypatch.setattr(td3, "Actor", ForkedActor)
+    flags = [model, "--seed", str(SEED + 100), "--episodes", "2"]
+    if activation is torch.relu:
+        assert evaluate.main(flags).mean() == pytest.approx(last_eval, rel=1e-6)
+        return
+    with pytest.raises(SystemExit) as exit_info:
+        evaluate.main(flags)
+    message = str(exit_info.value)
+    assert message.startswith("error: the policy built from") and "\n" not in message
+    assert "does not act as the run's evaluated policy did" in message and "load_policy" in message
+
+
+def test_a_policy_that_fails_on_the_probe_still_saves_its_model(tmp_path, monkeypatch, capsys):
+    """The probe is a check, not the point of --save-model: where the policy cannot act on it, the model is saved
+    without it, with a warning, and evaluate.py evaluates it unchecked, as a model saved before the probe."""
+    import rl_utils.run
+
+    def failing_probe(*_):
+        raise ValueError("a fork's policy that wants a dict\nsecond line")
+
+    monkeypatch.setattr(rl_utils.run, "policy_probe", failing_probe)
+    model, last_eval = train_and_save("td3", tmp_path, monkeypatch)
+    assert "warning: --save-model leaves out the policy's probe (ValueError: a fork's policy that wants a dict)" in (
+        capsys.readouterr().err
+    )
+    assert "probe" not in torch.load(model, weights_only=True)
+    assert evaluate.main([model, "--seed", str(SEED + 100), "--episodes", "2"]).mean() == pytest.approx(last_eval, rel=1e-6)

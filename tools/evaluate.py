@@ -11,7 +11,10 @@ model is a plain single-seed state_dict per network; a seed of a --num-seeds pro
 form, in its own run folder. The algorithm is read from the model's file
 name (`{exp_name}.cleanrl_model`, the script's name unless --exp-name changed it) and the task from
 its run folder's name (`{env_id}__...`, `dm_control-` standing for `dm_control/`); --algo and --env-id
-say them when the names do not. --capture-video records the first episode to --video-folder.
+say them when the names do not. --capture-video records the first episode to --video-folder. The file also
+holds the trained policy's actions on fixed observations ("probe"): a policy rebuilt here that acts otherwise (a
+fork's actor built with other settings than its defaults) stops with one line rather than give another
+policy's return.
 """
 
 import argparse
@@ -29,6 +32,11 @@ from rl_utils import evaluate, make_env, per_seed  # noqa: E402
 
 # every {algo}_continuous_action.py beside this folder, a new one included
 ALGOS = sorted(os.path.basename(p).removesuffix("_continuous_action.py") for p in glob.glob(f"{REPO}/*_continuous_action.py"))
+
+
+# how far an action of the rebuilt policy may be from the trained one's, over the action range: another device's or
+# vmap's rounding, not another network
+PROBE_TOLERANCE = 1e-4
 
 
 def fail(message: str):
@@ -67,12 +75,19 @@ def load_policy(script, algo: str, model_path: str, env):
             agent.load_state_dict(saved["actor"])
             normalizer = script.Normalizer(obs_dim, gamma=0.99)  # gamma only matters for rewards, not used here
             normalizer.load_state_dict(saved["normalizer"])
+
             # the mean action on the training statistics (not updated), clipped
-            return lambda obs: (
-                agent.actor_mean(torch.as_tensor(normalizer.observation(obs, update=False))).numpy().clip(low, high)
-            )
-        actor = script.Actor(obs_dim, env.action_space)
-        actor.load_state_dict(saved["actor"])
+            def policy(obs):
+                return agent.actor_mean(torch.as_tensor(normalizer.observation(obs, update=False))).numpy().clip(low, high)
+        else:
+            actor = script.Actor(obs_dim, env.action_space)
+            actor.load_state_dict(saved["actor"])
+            # SAC's and REDQ's squashed mean action, TD3's and OPARL's (pessimistic) actor; per_seed runs it on one
+            # observation, as the scripts' one-seed evaluations do
+            act = getattr(actor, "deterministic_action", actor)
+
+            def policy(obs):
+                return per_seed(act)(torch.as_tensor(obs)).numpy()
     except (RuntimeError, KeyError) as e:  # another algorithm's or another task's model
         fail(f"{model_path!r} does not fit {algo} on this task ({type(e).__name__}: {str(e).splitlines()[0]})")
     except TypeError as e:  # a fork whose networks take other arguments
@@ -80,10 +95,20 @@ def load_policy(script, algo: str, model_path: str, env):
             f"{algo}'s networks are not built as tools/evaluate.py builds them (Actor(obs_dim, action_space); Agent(obs_dim, "
             f"action_dim)): {str(e).splitlines()[0]}; build its policy in load_policy as the script's main does"
         )
-    # SAC's and REDQ's squashed mean action, TD3's and OPARL's (pessimistic) actor; per_seed runs it on one
-    # observation, as the scripts' one-seed evaluations do
-    act = getattr(actor, "deterministic_action", actor)
-    return lambda obs: per_seed(act)(torch.as_tensor(obs)).numpy()
+    if "probe" in saved:  # the trained policy's actions on fixed observations (rl_utils.envs.policy_probe)
+        probe = saved["probe"]
+        with torch.no_grad():
+            differences = [
+                np.abs(policy(x[None].numpy())[0] - a.numpy()).max() for x, a in zip(probe["observations"], probe["actions"])
+            ]
+        if max(differences) > PROBE_TOLERANCE * float(np.max(high - low)):
+            fail(
+                f"the policy built from {model_path!r} does not act as the run's evaluated policy did (an action off by "
+                f"{max(differences):.3g} on the fixed observations --save-model recorded): {algo}'s policy depends on "
+                "something tools/evaluate.py does not rebuild (a flag of a fork, a changed default, another policy "
+                "evaluated in main); build it in load_policy as the script's main does"
+            )
+    return policy
 
 
 def main(argv=None) -> np.ndarray:
