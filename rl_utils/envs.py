@@ -198,14 +198,17 @@ def check_actions(who: str, actions, num_envs: int, space: gym.spaces.Box, hint:
         raise refusal(ValueError, f"{who} have shape {shape}, not [num_seeds, action_dim] = {list(expected)}: {hint}")
 
 
-PROBE_SIZE = 16  # observations on which --save-model records the evaluated policy's actions
+PROBE_SCALES = (0.1, 1.0, 10.0, 100.0)  # the probe's observations: 8 normal draws at each scale
+PROBE_SIZE = 8 * len(PROBE_SCALES)
 
 
 def policy_probe(policy, observation_space, num_seeds: int) -> list:
     """--save-model's record of how the evaluated policy acts, one per seed: {"probe": {"observations", "actions"}},
-    its actions on PROBE_SIZE fixed observations (standard normal draws of the task's observation shape, from a
-    generator of their own). tools/evaluate.py compares them with the actions of the policy it rebuilds."""
-    observations = np.random.default_rng(0).standard_normal((PROBE_SIZE, *observation_space.shape))
+    its actions on PROBE_SIZE fixed observations (normal draws of the task's observation shape at PROBE_SCALES, from
+    a generator of their own: small ones where a tanh is not saturated, large ones past a clip or a bounded
+    activation). tools/evaluate.py compares them with the actions of the policy it rebuilds."""
+    scales = np.repeat(PROBE_SCALES, PROBE_SIZE // len(PROBE_SCALES)).reshape(-1, *[1] * len(observation_space.shape))
+    observations = scales * np.random.default_rng(0).standard_normal((PROBE_SIZE, *observation_space.shape))
     observations = observations.astype(observation_space.dtype)
     with torch.no_grad():  # each observation given to every seed: actions [num_seeds, PROBE_SIZE, action_dim]
         actions = np.stack([np.asarray(policy(np.stack([x] * num_seeds))) for x in observations], axis=1)

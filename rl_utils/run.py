@@ -57,7 +57,7 @@ class Run:
     run.log(logs, step); run.log_episodes(infos, step)
     with run.stop_on_nan(step): ...        # a non-finite loss ends the run, its last finite state saved
     run.end_step(step)                     # speed, progress bar, a checkpoint when one is due
-    return run.finish(save={"actor": actor})
+    return run.finish(save={"actor": actor}, eval_envs=eval_envs, policy=policy)   # --save-model; the envs closed
 
     What a checkpoint holds is the objects `start` was given: a network or optimizer that main binds anew afterwards
     (a reset by assignment) would not be in it, nor in a --cudagraphs update recorded before; end_step stops such a run
@@ -332,18 +332,19 @@ class Run:
         if args.checkpoint_frequency:
             ckpt.write_checkpoints(self.run_dirs, self.state(args.total_timesteps))
         if args.save_model:
-            n, probes = len(self.run_dirs), [{}] * len(self.run_dirs)
+            n = len(self.run_dirs)
+            models = [model_of_seed(save, k, n) for k in range(n)]  # before the probe, which a policy could move
+            probes, why = [{}] * n, "run.finish was given no policy"
             try:  # a policy that fails on the probe leaves it out: the model is what the run was for
                 probes = policy_probe(policy, self.env_list[0].observation_space, n) if policy is not None else probes
             except Exception as e:
                 why = f"{type(e).__name__}: {(str(e).splitlines() or [''])[0]}"
-                tqdm.write(
-                    f"warning: --save-model leaves out the policy's probe ({why}); evaluate.py cannot check it",
-                    file=sys.stderr,
-                )
-            for k, run_dir in enumerate(self.run_dirs):
+            if not probes[0]:
+                warning = f"warning: --save-model leaves out the policy's probe ({why}); evaluate.py cannot check it"
+                tqdm.write(warning, file=sys.stderr)
+            for model, probe, run_dir in zip(models, probes, self.run_dirs):
                 model_path = os.path.join(run_dir, f"{args.exp_name}.cleanrl_model")
-                torch.save({**model_of_seed(save, k, n), **probes[k]}, model_path)
+                torch.save({**model, **probe}, model_path)
                 tqdm.write(f"model saved to {model_path}")
         for env in [*self.env_list, *(eval_envs if isinstance(eval_envs, SeedEnvs) else [eval_envs] if eval_envs else [])]:
             env.close()

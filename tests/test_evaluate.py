@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from conftest import REPO, SCRIPTS, load, small_args
+from rl_utils.envs import PROBE_SIZE
 from test_end_to_end import VIDEO_ENV, rendering_works
 
 sys.path.insert(0, os.path.join(REPO, "tools"))
@@ -35,7 +36,7 @@ def test_evaluating_a_saved_model_reproduces_the_scripts_last_evaluation(script,
     returns = evaluate.main([model, "--seed", str(SEED + 100), "--episodes", "2"])  # its probe passed (below)
     assert len(returns) == 2
     probe = torch.load(model, weights_only=True)["probe"]  # how the evaluated policy acts, for evaluate.py to check
-    assert probe["observations"].shape == (16, 3) and probe["actions"].shape == (16, 1)
+    assert probe["observations"].shape == (PROBE_SIZE, 3) and probe["actions"].shape == (PROBE_SIZE, 1)
     assert returns.mean() == pytest.approx(last_eval, rel=1e-6)
     # another seed sees other start states
     assert evaluate.main([model, "--seed", str(SEED + 101), "--episodes", "2"]).mean() != pytest.approx(last_eval, rel=1e-6)
@@ -101,26 +102,33 @@ def test_bad_input_gets_one_line(tmp_path, monkeypatch):
         evaluate.main([str(renamed), "--algo", "td3", "--env-id", "Pendulum-v1"])
 
 
-@pytest.mark.parametrize("activation", [torch.relu, torch.tanh])
-def test_an_actor_that_acts_otherwise_than_the_trained_one_is_refused(activation, tmp_path, monkeypatch):
-    """A fork's flag that changes how its actor acts, not its weights' shapes (`--actor-activation`): the model was
-    trained with ReLU, and evaluate.py builds the actor with the defaults. With tanh's it stops in one line rather than
-    report another policy's return; with ReLU's, the same policy, it reproduces the last evaluation."""
+# a fork's flag that changes how its actor acts, not its weights' shapes: (activation, observations clipped at), the
+# values evaluate.py builds the fork's actor with; the model was trained with ReLU and unclipped observations
+FORKS = {"as trained": (torch.relu, None), "--actor-activation tanh": (torch.tanh, None), "--obs-clip 2.5": (torch.relu, 2.5)}
+
+
+@pytest.mark.parametrize("fork", FORKS)
+def test_an_actor_that_acts_otherwise_than_the_trained_one_is_refused(fork, tmp_path, monkeypatch):
+    """Built with other values than the trained actor's, the fork's actor stops evaluate.py in one line rather than
+    give another policy's return (a clip at 2.5 shows only on observations past it: Pendulum's reach 8); built as
+    trained, it repeats the last evaluation."""
     td3 = load("td3")
     model, last_eval = train_and_save("td3", tmp_path, monkeypatch)
+    activation, clip = FORKS[fork]
 
-    class ForkedActor(td3.Actor):  # the hidden layers' activation a keyword, given by a flag in the fork's main
-        def __init__(self, obs_dim, action_space, activation=activation):
+    class ForkedActor(td3.Actor):  # the values keywords with defaults, given by the fork's flags in its main
+        def __init__(self, obs_dim, action_space, activation=activation, clip=clip):
             super().__init__(obs_dim, action_space)
-            self.activation = activation
+            self.activation, self.clip = activation, clip
 
         def forward(self, x):
+            x = x if self.clip is None else x.clamp(-self.clip, self.clip)
             x = self.activation(self.fc2(self.activation(self.fc1(x))))
             return torch.tanh(self.fc_mu(x)) * self.action_scale + self.action_bias
 
     monkeypatch.setattr(td3, "Actor", ForkedActor)
     flags = [model, "--seed", str(SEED + 100), "--episodes", "2"]
-    if activation is torch.relu:
+    if fork == "as trained":
         assert evaluate.main(flags).mean() == pytest.approx(last_eval, rel=1e-6)
         return
     with pytest.raises(SystemExit) as exit_info:
@@ -130,18 +138,50 @@ def test_an_actor_that_acts_otherwise_than_the_trained_one_is_refused(activation
     assert "does not act as the run's evaluated policy did" in message and "load_policy" in message
 
 
-def test_a_policy_that_fails_on_the_probe_still_saves_its_model(tmp_path, monkeypatch, capsys):
-    """The probe is a check, not the point of --save-model: where the policy cannot act on it, the model is saved
-    without it, with a warning, and evaluate.py evaluates it unchecked, as a model saved before the probe."""
+def test_a_nan_in_the_probe_fails_the_check_unless_both_policies_give_it(tmp_path, monkeypatch):
+    model, last_eval = train_and_save("td3", tmp_path, monkeypatch)
+    saved = torch.load(model, weights_only=True)
+    actions = saved["probe"]["actions"]
+    saved["probe"]["actions"] = torch.cat([torch.full_like(actions[:1], float("nan")), actions[1:] + 1.0])  # all off
+    torch.save(saved, model)
+    with pytest.raises(SystemExit, match="does not act as the run's evaluated policy did"):
+        evaluate.main([model, "--seed", str(SEED + 100), "--episodes", "1"])
+    td3 = load("td3")  # an actor that gives NaN on the first probe observation, as the saved actions say it did
+    saved["probe"]["actions"][1:] = actions[1:]
+    torch.save(saved, model)
+    first = saved["probe"]["observations"][0]
+
+    class NanOnFirst(td3.Actor):
+        def forward(self, x):
+            return super().forward(x).masked_fill((x == first).all(-1, keepdim=True), float("nan"))
+
+    monkeypatch.setattr(td3, "Actor", NanOnFirst)
+    assert evaluate.main([model, "--seed", str(SEED + 100), "--episodes", "2"]).mean() == pytest.approx(last_eval, rel=1e-6)
+
+
+@pytest.mark.parametrize("why", ["the policy fails on it", "no policy given"])
+def test_a_model_without_its_probe_is_saved_with_a_warning_and_evaluated_unchecked(why, tmp_path, monkeypatch, capsys):
+    """The probe is a check, not the point of --save-model: where the policy cannot act on it, or a fork's main gives
+    run.finish no policy, the model is saved without it, with a warning, and evaluate.py evaluates it unchecked, as a
+    model saved before the probe."""
     import rl_utils.run
 
     def failing_probe(*_):
         raise ValueError("a fork's policy that wants a dict\nsecond line")
 
-    monkeypatch.setattr(rl_utils.run, "policy_probe", failing_probe)
+    finish = rl_utils.run.Run.finish
+    if why == "no policy given":
+        monkeypatch.setattr(
+            rl_utils.run.Run, "finish", lambda run, save, eval_envs=None, policy=None: finish(run, save, eval_envs)
+        )
+        expected = "(run.finish was given no policy)"
+    else:
+        monkeypatch.setattr(rl_utils.run, "policy_probe", failing_probe)
+        expected = "(ValueError: a fork's policy that wants a dict)"
     model, last_eval = train_and_save("td3", tmp_path, monkeypatch)
-    assert "warning: --save-model leaves out the policy's probe (ValueError: a fork's policy that wants a dict)" in (
-        capsys.readouterr().err
+    assert (
+        f"warning: --save-model leaves out the policy's probe {expected}; evaluate.py cannot check it"
+        in capsys.readouterr().err
     )
     assert "probe" not in torch.load(model, weights_only=True)
     assert evaluate.main([model, "--seed", str(SEED + 100), "--episodes", "2"]).mean() == pytest.approx(last_eval, rel=1e-6)

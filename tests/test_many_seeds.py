@@ -351,6 +351,7 @@ def test_each_seed_is_an_ordinary_run(script, tmp_path):
         model = str(run_dir / f"{script}_continuous_action.cleanrl_model")
         saved = torch.load(model, weights_only=True)
         module.Actor(obs_dim, space).load_state_dict(saved["actor"])  # a one-seed actor, as a single-seed run saves it
+        assert "probe" in saved and "warning" not in result.stderr  # its probe: that seed's actions, which evaluate.py checks
         returns = evaluate_tool.main([model, "--env-id", "Pendulum-v1", "--seed", str(seed + 100), "--episodes", "1"])
         assert returns.mean() == pytest.approx(logged[-1][1], rel=1e-4)  # evaluated in training: to vmap's rounding
         actors.append(saved["actor"])
