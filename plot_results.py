@@ -5,6 +5,8 @@
     python plot_results.py results/main/eval_series.csv runs --finished-only --out results/main   # both, merged
     python plot_results.py results/main/eval_series.csv runs/*__oparl__*__100000 --finished-only --out results/main
                                                                    # run folders picked by name, as benchmark.sh names them
+    python plot_results.py results/dmc_1m/eval_series.csv --up-to 500000 --prefix at500k_ --out /tmp/dmc1m
+                                                                   # an unfinished sweep read at one step its runs reached
 
 Writes into --out:
   {prefix}curves.png        eval/episodic_return per env, one line per algorithm: mean over seeds of
@@ -36,6 +38,7 @@ where the two records differ.
 
 import argparse
 import csv
+import dataclasses
 import os
 import sys
 import zlib
@@ -252,6 +255,22 @@ def complete_runs(runs: list) -> dict:
             warn(f"{key[0]} on {key[1]}: run(s) cut short before step {last}, left out of the table and IQM: {cut}")
         complete[key] = [r for r in group if r.steps[-1] == last]
     return complete
+
+
+def runs_up_to(runs: list, step: int) -> list:
+    """--up-to: each run's evaluations up to `step`, of the runs that have reached it; warns about the others."""
+    reached = [r for r in runs if r.steps[-1] >= step]
+    if not reached:
+        fail(f"--up-to {step}: no run has reached step {step} (the furthest is at {max(r.steps[-1] for r in runs)})")
+    short = sorted((r for r in runs if r.steps[-1] < step), key=run_order)
+    if short:
+        cut = ", ".join(f"{r.algo} on {r.env_id} seed {r.seed} (at {r.steps[-1]})" for r in short)
+        warn(f"--up-to {step}: left out, not there yet: {cut}")
+    return [dataclasses.replace(r, steps=r.steps[r.steps <= step], returns=r.returns[r.steps <= step]) for r in reached]
+
+
+def run_order(run: Run) -> tuple:
+    return run.env_id, run.algo, run.seed
 
 
 def plot_curves(runs: list, path: str, window: int = SMOOTHING):
@@ -674,6 +693,12 @@ def main(argv=None):
     )
     parser.add_argument("--finished-only", action="store_true", help="from runs folders, only runs benchmark.sh marked DONE")
     parser.add_argument(
+        "--up-to",
+        type=int,
+        metavar="STEP",
+        help="read the runs at STEP: the table, IQM and curves from each run's evaluations up to STEP, the runs that have not reached it left out (an unfinished sweep compared where its runs all are); the CSVs keep every evaluation",
+    )
+    parser.add_argument(
         "--bootstrap-reps",
         type=int,
         default=BOOTSTRAP_REPS,
@@ -682,6 +707,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.smoothing < 1:
         fail(f"--smoothing must be a whole number of evaluations >= 1 (1 draws the raw curves), got {args.smoothing}")
+    if args.up_to is not None and args.up_to < 0:
+        fail(f"--up-to must be a step >= 0, got {args.up_to}")
     if args.bootstrap_reps < 100:
         fail(f"--bootstrap-reps must be >= 100 (a 95% interval needs the tails of many resamples), got {args.bootstrap_reps}")
 
@@ -712,6 +739,8 @@ def main(argv=None):
                     f"{name}: {', '.join(sorted(unknown))} not found; the runs have {', '.join(sorted({getattr(r, key) for r in runs}))}"
                 )
             runs = [r for r in runs if getattr(r, key) in wanted]
+    if args.up_to is not None:
+        runs = runs_up_to(runs, args.up_to)
     paper = {} if args.no_paper or not os.path.isfile(args.paper_table) else read_paper_table(args.paper_table)
     claims = {} if args.no_paper or not os.path.isfile(args.paper_claims) else read_paper_claims(args.paper_claims)
     scales = score_scales(all_runs, read_random_scores(args.random_scores) if args.random_scores else {})

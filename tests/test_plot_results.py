@@ -526,3 +526,29 @@ def test_flags_a_run_may_change_on_resume_do_not_name_an_algorithm():
     from rl_utils.cli import RESUMABLE_FLAGS
 
     assert RESUMABLE_FLAGS <= pr.NOT_ALGORITHM
+
+
+def test_up_to_reads_every_run_at_one_step_and_leaves_out_those_not_there(tmp_path, capsys):
+    """An unfinished sweep read where its runs are: each run's evaluations up to --up-to, the runs short of it named
+    and left out; the CSVs keep every evaluation of every run."""
+    root = str(tmp_path / "runs")
+    write_run(root, "td3_continuous_action", DMC_A, 1, [0, 10, 30, 70])  # finished, at 15000
+    write_run(root, "td3_continuous_action", DMC_A, 2, [0, 20, 50, 90])
+    write_run(root, "oparl_continuous_action", DMC_A, 1, [0, 40, 60])  # at 10000
+    write_run(root, "oparl_continuous_action", DMC_A, 2, [0, 45])  # at 5000: not there yet
+    out = str(tmp_path / "out")
+    plot([root, "--out", out, "--no-paper", "--up-to", "10000"])
+    assert "--up-to 10000: left out, not there yet: oparl on dm_control/cartpole-swingup-v0 seed 2 (at 5000)" in (
+        capsys.readouterr().err
+    )
+    lines = open(os.path.join(out, "table.md")).read().splitlines()
+    assert lines[0].endswith("at 10000 steps.") and "Runs of different lengths" not in lines[1]
+    assert "| cartpole-swingup-v0 | **60.0 (1)** | 40.0 +- 14.1 (2) |" in lines  # td3 at 10000: 30 and 50
+    final = open(os.path.join(out, "final_returns.csv")).read()
+    assert (
+        "td3,dm_control/cartpole-swingup-v0,1,15000,70.0" in final and "oparl,dm_control/cartpole-swingup-v0,2,5000" in final
+    )
+    with pytest.raises(SystemExit, match="--up-to 20000: no run has reached step 20000 \\(the furthest is at 15000\\)"):
+        plot([root, "--out", out, "--no-paper", "--up-to", "20000"])
+    with pytest.raises(SystemExit, match="--up-to must be a step >= 0, got -1"):
+        plot([root, "--out", out, "--no-paper", "--up-to", "-1"])
