@@ -485,6 +485,7 @@ def write_table(
     scales: dict = None,
     improvements: dict = None,
     reps: int = BOOTSTRAP_REPS,
+    up_to: int = None,
 ):
     algos = algo_order({a for a, _ in complete})
     envs = sorted({e for _, e in complete})
@@ -497,6 +498,8 @@ def write_table(
         f"Final evaluation return (mean +- sample std over seeds, ddof 1; seeds per cell in parentheses) at "
         f"{' / '.join(map(str, budgets))} steps."
     ]
+    if up_to is not None:  # "final" is the last evaluation up to that step: the runs may have gone further
+        lines[0] = lines[0].replace("Final evaluation return", f"Last evaluation return up to step {up_to} (--up-to)", 1)
     if len(budgets) > 1:  # an unfinished sweep, or a shorter arm: every comparison below sets unequal budgets side by side
         short = sorted((e, a) for (a, e), s in steps.items() if s < budgets[-1])
         lines.append(
@@ -751,7 +754,7 @@ def main(argv=None):
     stats, matrices = aggregate(complete, algo_order({a for a, _ in complete}), scales, args.bootstrap_reps)
     improvements = probabilities_of_improvement(matrices, args.bootstrap_reps)
     plot_curves(runs, out("curves.png"), args.smoothing)
-    write_table(complete, stats, paper, out("table.md"), claims, scales, improvements, args.bootstrap_reps)
+    write_table(complete, stats, paper, out("table.md"), claims, scales, improvements, args.bootstrap_reps, args.up_to)
     figures = ["curves.png"]
     if stats:
         normalisation = normalisation_text({env: scales[env] for _, env in complete if env in scales})
