@@ -560,7 +560,7 @@ def write_table(
     seeds = sorted({r.seed for group in complete.values() for r in group})
     lines += [
         "",
-        "Final evaluation return per seed:",
+        "Final evaluation return per seed:" if up_to is None else f"Last evaluation return up to step {up_to} per seed:",
         "",
         "| task | algorithm | " + " | ".join(f"seed {s}" for s in seeds) + " |",
         "|---|---|" + "---|" * len(seeds),

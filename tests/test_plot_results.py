@@ -543,7 +543,7 @@ def test_up_to_reads_every_run_at_one_step_and_leaves_out_those_not_there(tmp_pa
     )
     lines = open(os.path.join(out, "table.md")).read().splitlines()
     assert lines[0].startswith("Last evaluation return up to step 10000 (--up-to)") and lines[0].endswith("at 10000 steps.")
-    assert "Runs of different lengths" not in lines[1]
+    assert "Runs of different lengths" not in lines[1] and "Last evaluation return up to step 10000 per seed:" in lines
     assert "| cartpole-swingup-v0 | **60.0 (1)** | 40.0 +- 14.1 (2) |" in lines  # td3 at 10000: 30 and 50
     final = open(os.path.join(out, "final_returns.csv")).read()
     assert (
