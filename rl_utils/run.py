@@ -16,6 +16,7 @@ from tqdm import tqdm
 
 from rl_utils import checkpoints as ckpt
 from rl_utils.cli import script_of
+from rl_utils.buffers import ReplayBuffer
 from rl_utils.envs import SeedEnvs, policy_probe
 from rl_utils.errors import fail, refusal
 from rl_utils.logs import Logs
@@ -128,6 +129,7 @@ class Run:
                     f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there"
                     + ("" if name.isidentifier() else f" (each under a name of its own: '{part_name(name)}': {name})")
                 )
+        self.check_optimizers_held(nets, optimizers, parts, watched)
         self.check_stacked_for_the_seeds()
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
         self.check_state_held()
@@ -140,6 +142,44 @@ class Run:
         if isinstance(envs, SeedEnvs):
             return np.stack(observations) if observations else None
         return observations[0] if observations else None
+
+    def check_optimizers_held(self, nets: dict, optimizers: dict, parts: dict, watched: dict):
+        """Every tensor an optimizer given trains is a checkpoint's too (a parameter of a network given, a tensor part
+        such as SAC's log_alpha, a tensor in a part's state_dict()): else --resume would restore the optimizer's state
+        and start the tensor from its initial value. And an optimizer a network holds as an attribute
+        (`qf.optimizer = ...`) is among the optimizers given."""
+
+        def storage(tensors) -> set:
+            return {t.untyped_storage().data_ptr() for t in tensors if isinstance(t, torch.Tensor) and t.numel()}
+
+        trained = [p for optimizer in optimizers.values() for group in optimizer.param_groups for p in group["params"]]
+        held_storage = storage([*(p for net in nets.values() for p in net.parameters()), *parts.values()])
+        if not storage(trained) <= held_storage:  # a part's state_dict() may hold it (not the replay buffer's: a copy)
+            for part in parts.values():
+                if callable(getattr(part, "state_dict", None)) and not isinstance(part, ReplayBuffer):
+                    state = part.state_dict()
+                    held_storage |= storage(state.values() if isinstance(state, dict) else [])
+        names = {id(x): name for name, x in held(self.caller.f_locals)}
+        for label, optimizer in optimizers.items():
+            for p in (p for group in optimizer.param_groups for p in group["params"]):
+                if p.numel() and p.untyped_storage().data_ptr() not in held_storage:
+                    name = names.get(id(p))
+                    fail(
+                        f"`{label}` trains a tensor{f' (`{name}`)' if name else ''} that is in no network or part given to "
+                        "run.start: a checkpoint would hold the optimizer's state but not the tensor, and --resume would "
+                        "start it from its initial value; add it to run.start's parts"
+                        + (f" (run.start(..., {part_name(name)}={name}))" if name else "")
+                    )
+        for net_name, net in nets.items():
+            for module_name, module in net.named_modules():
+                for key, x in vars(module).items():
+                    if isinstance(x, torch.optim.Optimizer) and id(x) not in watched:
+                        label = ".".join(filter(None, (net_name, module_name, key)))
+                        fail(
+                            f"`{label}`, an optimizer a network holds, is not in run.start's optimizers: a checkpoint would "
+                            f"not hold its state, and --resume would start it again; add it there ('{part_name(label)}': "
+                            f"{label})"
+                        )
 
     def evaluate(self, step: int, returns: np.ndarray):
         self.logs.evaluate(step, returns)

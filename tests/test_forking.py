@@ -1367,6 +1367,58 @@ def test_a_network_or_optimizer_in_a_list_main_holds_is_refused_unless_given_and
     del first_critic, losses
 
 
+def test_a_tensor_an_optimizer_trains_outside_the_networks_and_parts_is_refused(run_of):
+    """A Lagrange multiplier (as SAC's log_alpha) whose optimizer is given but the tensor is not: a checkpoint would
+    restore Adam's state and start the multiplier from its initial value. Refused in one line naming it; accepted as a
+    tensor part, or inside a part whose state_dict() holds it."""
+    run, envs = run_of()
+    qf = nn.Linear(4, 1)
+    log_beta = torch.zeros(1, requires_grad=True)
+    optimizers = {"q_optimizer": torch.optim.Adam(qf.parameters()), "beta_optimizer": torch.optim.Adam([log_beta])}
+    with pytest.raises(SystemExit) as refused:
+        run.start(envs, CPU, {"qf": qf}, optimizers)
+    assert str(refused.value) == (
+        "error: `beta_optimizer` trains a tensor (`log_beta`) that is in no network or part given to run.start: a "
+        "checkpoint would hold the optimizer's state but not the tensor, and --resume would start it from its initial "
+        "value; add it to run.start's parts (run.start(..., log_beta=log_beta))"
+    )
+    run.start(envs, CPU, {"qf": qf}, optimizers, log_beta=log_beta)
+    run.logs.close()
+    run, envs = run_of()
+
+    class Multiplier:  # a part with a state_dict() that holds the trained tensor
+        def __init__(self):
+            self.log_beta = torch.zeros(1, requires_grad=True)
+
+        def state_dict(self):
+            return {"log_beta": self.log_beta}
+
+        def load_state_dict(self, state):
+            with torch.no_grad():
+                self.log_beta.copy_(state["log_beta"])
+
+    multiplier = Multiplier()
+    optimizers["beta_optimizer"] = torch.optim.Adam([multiplier.log_beta])
+    run.start(envs, CPU, {"qf": qf}, optimizers, multiplier=multiplier)
+    run.logs.close()
+
+
+def test_an_optimizer_a_network_holds_as_an_attribute_is_refused_unless_given(run_of):
+    """Stable-Baselines3's habit, `qf.optimizer = Adam(...)`: the network is given, its optimizer not; --resume would
+    start Adam's state again."""
+    run, envs = run_of()
+    qf = nn.Sequential(nn.Linear(4, 8), nn.Linear(8, 1))
+    qf[1].optimizer = torch.optim.Adam(qf.parameters())
+    with pytest.raises(SystemExit) as refused:
+        run.start(envs, CPU, {"qf": qf}, {})
+    assert str(refused.value) == (
+        "error: `qf.1.optimizer`, an optimizer a network holds, is not in run.start's optimizers: a checkpoint would not "
+        "hold its state, and --resume would start it again; add it there ('qf_1_optimizer': qf.1.optimizer)"
+    )
+    run.start(envs, CPU, {"qf": qf}, {"q_optimizer": qf[1].optimizer})
+    run.logs.close()
+
+
 def test_state_in_a_list_is_refused_where_checkpoints_are_written(run_of):
     """A generator (or a scheduler, or an object with a state_dict) inside a list main holds is found as one held by
     name is, in a run that writes checkpoints."""
