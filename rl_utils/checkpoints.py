@@ -101,7 +101,19 @@ class EpisodeRecord(gym.Wrapper):
 
 CHECKPOINT = "checkpoint.pt"
 # the keys a checkpoint keeps its own state under (snapshot(), split_seeds()), which no part of run.start may take
-OWN_KEYS = ("script", "format", "args", "global_step", "nets", "optimizers", "rng", "envs", "run_names", "seed_index")
+OWN_KEYS = (
+    "script",
+    "format",
+    "args",
+    "args_given",
+    "global_step",
+    "nets",
+    "optimizers",
+    "rng",
+    "envs",
+    "run_names",
+    "seed_index",
+)
 OWN_KEYS += ("eval_returns", "seed_cut")
 # 3: critics as modules of nn.Linear layers (QNetwork); 2: critics as one hand-batched module; 1: every seed stacked
 # in each layer, before rl_utils. A checkpoint of another format resumes only with the scripts that wrote it.
@@ -231,7 +243,7 @@ def check_loadable(path: str, state: dict):
         what = f"the checkpoint holds {', '.join(torch.serialization.get_unsafe_globals_in_checkpoint(path))}"
     else:
         keys = [k.strip("'") for k in re.findall(r"\[('[^']*'|\d+)\]", found[0])]
-        if keys[0] == "args":
+        if keys[0] in ("args", "args_given"):
             what = f"the flag `{keys[1]}` holds a {found[1]}"
         else:
             inside = "".join(f"[{k!r}]" if not k.isdigit() else f"[{k}]" for k in keys[1:])

@@ -27,7 +27,8 @@ def parse_args(Args, checks=None, argv=None):
     does not change what is learned."""
     args = tyro.cli(Args, args=argv)
     if args.resume:
-        run_args = load_checkpoint(args.resume, script_of(Args))["args"]
+        checkpoint = load_checkpoint(args.resume, script_of(Args))
+        run_args = checkpoint.get("args_given", checkpoint["args"])  # as main got them (rl_utils.run.Run)
         args = tyro.cli(Args, args=argv, default=Args(**run_args))
         differing = [k for k, v in run_args.items() if k not in RESUMABLE_FLAGS and getattr(args, k) != v]
         if differing:

@@ -15,7 +15,7 @@ from torch.optim import lr_scheduler
 from tqdm import tqdm
 
 from rl_utils import checkpoints as ckpt
-from rl_utils.cli import script_of
+from rl_utils.cli import RESUMABLE_FLAGS, script_of
 from rl_utils.buffers import ReplayBuffer
 from rl_utils.envs import SeedEnvs, policy_probe
 from rl_utils.errors import fail, refusal
@@ -67,6 +67,9 @@ class Run:
 
     def __init__(self, args):
         self.args, self.script = args, script_of(type(args))
+        # the flags as main got them: what --resume parses again, so that what main makes of them before run.start
+        # (args.exploration_noise *= max_action) is made once; run.start then restores any flag main changed since
+        self.args_given = dict(vars(args))
         self.seeds = list(range(args.seed, args.seed + getattr(args, "num_seeds", 1)))  # trained side by side
         self.checkpoints = ckpt.load_checkpoints(args.resume, self.script) if args.resume else None  # one per seed
         self.run_dirs = self.folders()
@@ -137,6 +140,7 @@ class Run:
         observations = None
         if self.checkpoints:
             observations = ckpt.restore(join_seeds(self.checkpoints, parts), self.env_list, nets, optimizers, parts)
+            self.restore_changed_flags()
         self.logs = Logs(self.args, self.run_dirs, self.seeds, self.start_step, self.eval_returns, device)
         self.next_checkpoint = self.start_step + self.args.checkpoint_frequency
         if isinstance(envs, SeedEnvs):
@@ -180,6 +184,16 @@ class Run:
                             f"not hold its state, and --resume would start it again; add it there ('{part_name(label)}': "
                             f"{label})"
                         )
+
+    def restore_changed_flags(self):
+        """On --resume, the flags main changed during the run (a decay: args.exploration_noise *= 0.99 a step) as they
+        were at the checkpoint: --resume parsed the flags as given, and main has redone only what it does before
+        run.start."""
+        checkpoint = self.checkpoints[0]
+        given = checkpoint.get("args_given", checkpoint["args"])  # a checkpoint of an earlier commit: none changed
+        for name, value in checkpoint["args"].items():
+            if name not in RESUMABLE_FLAGS and given.get(name) != value:
+                setattr(self.args, name, value)
 
     def evaluate(self, step: int, returns: np.ndarray):
         self.logs.evaluate(step, returns)
@@ -301,7 +315,7 @@ class Run:
         """One checkpoint per seed of the process's state at `step`."""
         self.check_state_held()
         state = ckpt.snapshot(self.script, self.args, self.env_list, step, self.nets, self.optimizers, self.parts)
-        return split_seeds(state, self.parts, self.eval_returns, self.run_dirs)
+        return split_seeds({**state, "args_given": self.args_given}, self.parts, self.eval_returns, self.run_dirs)
 
     @contextlib.contextmanager
     def stop_on_nan(self, step: int):

@@ -672,7 +672,7 @@ def model_of_seed(saved: dict, k: int, num_seeds: int) -> dict:
     model = {}
     for name, x in saved.items():
         if isinstance(x, nn.Module):
-            state = x.state_dict()
+            state = getattr(x, "_orig_mod", x).state_dict()  # a torch.compile'd network saved as the network it wraps
             model[name] = seed_share(state, k) if num_seeds > 1 else state
         elif isinstance(x, torch.Tensor):
             model[name] = x.detach().cpu()[k : k + 1].clone()

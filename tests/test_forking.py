@@ -28,6 +28,7 @@ import rl_utils.checkpoints as ckpt
 import rl_utils.envs as env_layer
 import rl_utils.seeds as seeds_module
 from rl_utils.logs import Logs
+from rl_utils.run import Run
 from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
 
 SEEDS = pytest.mark.parametrize("seeds", [[4], [4, 5, 6]], ids=["one seed", "three seeds"])
@@ -1367,6 +1368,17 @@ def test_a_network_or_optimizer_in_a_list_main_holds_is_refused_unless_given_and
     del first_critic, losses
 
 
+def test_a_compiled_network_is_saved_as_the_network_it_wraps():
+    """`actor = torch.compile(actor)` in a fork: --save-model's file loads into the script's own Actor, as
+    tools/evaluate.py loads it (the compiled module's state_dict names every tensor `_orig_mod.`...)."""
+    net = nn.Linear(3, 2)
+    compiled = torch.compile(net)  # compiles at its first call: never here
+    assert list(compiled.state_dict()) == ["_orig_mod.weight", "_orig_mod.bias"]
+    saved = model_of_seed({"actor": compiled}, 0, 1)["actor"]
+    nn.Linear(3, 2).load_state_dict(saved)
+    assert torch.equal(saved["weight"], net.weight)
+
+
 def test_a_tensor_an_optimizer_trains_outside_the_networks_and_parts_is_refused(run_of):
     """A Lagrange multiplier (as SAC's log_alpha) whose optimizer is given but the tensor is not: a checkpoint would
     restore Adam's state and start the multiplier from its initial value. Refused in one line naming it; accepted as a
@@ -1417,6 +1429,33 @@ def test_an_optimizer_a_network_holds_as_an_attribute_is_refused_unless_given(ru
     )
     run.start(envs, CPU, {"qf": qf}, {"q_optimizer": qf[1].optimizer})
     run.logs.close()
+
+
+def test_flags_main_changes_are_made_once_on_resume_and_restored_as_they_were(run_of):
+    """A fork that scales a flag before run.start (Fujimoto's `args.exploration_noise *= max_action`) and decays it a
+    step: --resume parses the flags as main got them, main scales once more, and run.start puts back the value the
+    checkpoint holds, not the scale applied twice; the flag given again, as benchmark.sh gives it, is no conflict."""
+    run, envs = run_of(checkpoint_frequency=1, exploration_noise=0.1)
+    args = run.args
+    args.exploration_noise *= 2.0  # main, before run.start: 0.2
+
+    def parts():
+        torch.manual_seed(0)
+        qf = nn.Linear(3, 1)
+        return {"qf": qf}, {"q_optimizer": torch.optim.Adam(qf.parameters())}
+
+    run.start(envs, CPU, *parts())
+    args.exploration_noise *= 0.9  # a decay in the loop: 0.18 at the checkpoint
+    run.end_step(0)  # writes the checkpoint of step 1
+    run.logs.close()
+    for flags in (["--resume", "runs/r1"], ["--resume", "runs/r1", "--exploration-noise", "0.1"]):
+        resumed = parse_args(td3.Args, argv=flags)
+        assert resumed.exploration_noise == 0.1  # as main got it
+        run = Run(resumed)
+        resumed.exploration_noise *= 2.0  # main again
+        run.start(envs, CPU, *parts())
+        assert resumed.exploration_noise == pytest.approx(0.18)  # as at the checkpoint, not 0.36
+        run.logs.close()
 
 
 def test_state_in_a_list_is_refused_where_checkpoints_are_written(run_of):
