@@ -2,6 +2,7 @@
 checkpoints and its saved model, as an ordinary single-seed run has them."""
 
 import contextlib
+import copy
 import dataclasses
 import os
 import random
@@ -69,7 +70,7 @@ class Run:
         self.args, self.script = args, script_of(type(args))
         # the flags as main got them: what --resume parses again, so that what main makes of them before run.start
         # (args.exploration_noise *= max_action) is made once; run.start then restores any flag main changed since
-        self.args_given = dict(vars(args))
+        self.args_given = copy.deepcopy(vars(args))  # a list flag main changes in place is not changed here
         self.seeds = list(range(args.seed, args.seed + getattr(args, "num_seeds", 1)))  # trained side by side
         self.checkpoints = ckpt.load_checkpoints(args.resume, self.script) if args.resume else None  # one per seed
         self.run_dirs = self.folders()
@@ -156,17 +157,30 @@ class Run:
         def storage(tensors) -> set:
             return {t.untyped_storage().data_ptr() for t in tensors if isinstance(t, torch.Tensor) and t.numel()}
 
+        def tensors_in(state) -> list:  # a state_dict()'s tensors, in nested dicts, lists and tuples too
+            if isinstance(state, torch.Tensor):
+                return [state]
+            values = state.values() if isinstance(state, dict) else state if isinstance(state, (list, tuple)) else []
+            return [t for v in values for t in tensors_in(v)]
+
         trained = [p for optimizer in optimizers.values() for group in optimizer.param_groups for p in group["params"]]
-        held_storage = storage([*(p for net in nets.values() for p in net.parameters()), *parts.values()])
-        if not storage(trained) <= held_storage:  # a part's state_dict() may hold it (not the replay buffer's: a copy)
+        held_storage = storage([*(t for net in nets.values() for t in [*net.parameters(), *net.buffers()]), *parts.values()])
+        in_states = []  # the tensors of the parts' state_dict()s (not the replay buffer's: a copy of its rows)
+        if not storage(trained) <= held_storage:
             for part in parts.values():
                 if callable(getattr(part, "state_dict", None)) and not isinstance(part, ReplayBuffer):
-                    state = part.state_dict()
-                    held_storage |= storage(state.values() if isinstance(state, dict) else [])
+                    in_states += tensors_in(part.state_dict())
+
+        def is_held(p) -> bool:  # its storage, or in a part's state_dict(), itself or a copy (its shape and values)
+            copies = (t for t in in_states if t.shape == p.shape and t.device == p.device)
+            return p.untyped_storage().data_ptr() in held_storage | storage(in_states) or any(
+                torch.equal(t.detach(), p.detach()) for t in copies
+            )
+
         names = {id(x): name for name, x in held(self.caller.f_locals)}
         for label, optimizer in optimizers.items():
             for p in (p for group in optimizer.param_groups for p in group["params"]):
-                if p.numel() and p.untyped_storage().data_ptr() not in held_storage:
+                if p.numel() and not is_held(p):
                     name = names.get(id(p))
                     fail(
                         f"`{label}` trains a tensor{f' (`{name}`)' if name else ''} that is in no network or part given to "
@@ -178,7 +192,8 @@ class Run:
             for module_name, module in net.named_modules():
                 for key, x in vars(module).items():
                     if isinstance(x, torch.optim.Optimizer) and id(x) not in watched:
-                        label = ".".join(filter(None, (net_name, module_name, key)))
+                        path = [f"[{k}]" if k.isdigit() else f".{k}" for k in filter(None, module_name.split("."))]
+                        label = net_name + "".join(path) + f".{key}"  # qf[1].optimizer
                         fail(
                             f"`{label}`, an optimizer a network holds, is not in run.start's optimizers: a checkpoint would "
                             f"not hold its state, and --resume would start it again; add it there ('{part_name(label)}': "
@@ -186,13 +201,11 @@ class Run:
                         )
 
     def restore_changed_flags(self):
-        """On --resume, the flags main changed during the run (a decay: args.exploration_noise *= 0.99 a step) as they
-        were at the checkpoint: --resume parsed the flags as given, and main has redone only what it does before
-        run.start."""
-        checkpoint = self.checkpoints[0]
-        given = checkpoint.get("args_given", checkpoint["args"])  # a checkpoint of an earlier commit: none changed
-        for name, value in checkpoint["args"].items():
-            if name not in RESUMABLE_FLAGS and given.get(name) != value:
+        """On --resume, every flag as it was at the checkpoint (but those a resume may change): --resume parsed them as
+        main got them, main has redone what it does before run.start, and a flag it changed during the run (a decay:
+        args.exploration_noise *= 0.99 a step) takes its checkpoint's value again."""
+        for name, value in self.checkpoints[0]["args"].items():
+            if name not in RESUMABLE_FLAGS:
                 setattr(self.args, name, value)
 
     def evaluate(self, step: int, returns: np.ndarray):

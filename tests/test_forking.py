@@ -1413,6 +1413,20 @@ def test_a_tensor_an_optimizer_trains_outside_the_networks_and_parts_is_refused(
     optimizers["beta_optimizer"] = torch.optim.Adam([multiplier.log_beta])
     run.start(envs, CPU, {"qf": qf}, optimizers, multiplier=multiplier)
     run.logs.close()
+    run, envs = run_of()  # a state_dict() that copies, nested: the copy is what the checkpoint holds
+    multiplier.state_dict = lambda: {"multipliers": {"log_beta": multiplier.log_beta.detach().clone()}}
+    run.start(envs, CPU, {"qf": qf}, optimizers, multiplier=multiplier)
+    run.logs.close()
+    run, envs = run_of()  # a trained buffer of a network given: in its state_dict()
+    qf.register_buffer("temperature", torch.ones(1, requires_grad=True))
+    optimizers["beta_optimizer"] = torch.optim.Adam([qf.temperature])
+    run.start(envs, CPU, {"qf": qf}, optimizers)
+    run.logs.close()
+    run, envs = run_of()  # SAC's log_alpha given, a second multiplier of its shape and value not
+    log_alpha, log_beta = torch.zeros(1, requires_grad=True), torch.zeros(1, requires_grad=True)
+    optimizers = {"a_optimizer": torch.optim.Adam([log_alpha]), "beta_optimizer": torch.optim.Adam([log_beta])}
+    with pytest.raises(SystemExit, match="`beta_optimizer` trains a tensor \\(`log_beta`\\)"):
+        run.start(envs, CPU, {"qf": qf}, optimizers, log_alpha=log_alpha)
 
 
 def test_an_optimizer_a_network_holds_as_an_attribute_is_refused_unless_given(run_of):
@@ -1424,28 +1438,40 @@ def test_an_optimizer_a_network_holds_as_an_attribute_is_refused_unless_given(ru
     with pytest.raises(SystemExit) as refused:
         run.start(envs, CPU, {"qf": qf}, {})
     assert str(refused.value) == (
-        "error: `qf.1.optimizer`, an optimizer a network holds, is not in run.start's optimizers: a checkpoint would not "
-        "hold its state, and --resume would start it again; add it there ('qf_1_optimizer': qf.1.optimizer)"
+        "error: `qf[1].optimizer`, an optimizer a network holds, is not in run.start's optimizers: a checkpoint would not "
+        "hold its state, and --resume would start it again; add it there ('qf_1_optimizer': qf[1].optimizer)"
     )
     run.start(envs, CPU, {"qf": qf}, {"q_optimizer": qf[1].optimizer})
     run.logs.close()
 
 
-def test_flags_main_changes_are_made_once_on_resume_and_restored_as_they_were(run_of):
-    """A fork that scales a flag before run.start (Fujimoto's `args.exploration_noise *= max_action`) and decays it a
-    step: --resume parses the flags as main got them, main scales once more, and run.start puts back the value the
-    checkpoint holds, not the scale applied twice; the flag given again, as benchmark.sh gives it, is no conflict."""
+@dataclasses.dataclass
+class ListFlagArgs(td3.Args):  # a fork's flag that is a list
+    noise_scales: typing.List[float] = dataclasses.field(default_factory=lambda: [0.1, 0.2])
+
+
+def one_critic():
+    torch.manual_seed(0)
+    qf = nn.Linear(3, 1)
+    return {"qf": qf}, {"q_optimizer": torch.optim.Adam(qf.parameters())}
+
+
+# a flag main scales by 2 before run.start, then changes in the loop by a factor: (decay, its value at the checkpoint)
+IN_THE_LOOP = {"decayed": (0.9, 0.18), "back to the value given": (0.5, 0.1)}
+
+
+@pytest.mark.parametrize("in_the_loop", IN_THE_LOOP)
+def test_flags_main_changes_are_made_once_on_resume_and_restored_as_they_were(in_the_loop, run_of):
+    """A fork that scales a flag before run.start (Fujimoto's `args.exploration_noise *= max_action`) and changes it in
+    the loop: --resume parses the flags as main got them, main scales once more, and run.start puts back the value the
+    checkpoint holds, not the scale applied twice (also where the loop brought it back to the value given); the flag
+    given again, as benchmark.sh gives it, is no conflict."""
+    factor, at_checkpoint = IN_THE_LOOP[in_the_loop]
     run, envs = run_of(checkpoint_frequency=1, exploration_noise=0.1)
     args = run.args
     args.exploration_noise *= 2.0  # main, before run.start: 0.2
-
-    def parts():
-        torch.manual_seed(0)
-        qf = nn.Linear(3, 1)
-        return {"qf": qf}, {"q_optimizer": torch.optim.Adam(qf.parameters())}
-
-    run.start(envs, CPU, *parts())
-    args.exploration_noise *= 0.9  # a decay in the loop: 0.18 at the checkpoint
+    run.start(envs, CPU, *one_critic())
+    args.exploration_noise *= factor  # in the loop
     run.end_step(0)  # writes the checkpoint of step 1
     run.logs.close()
     for flags in (["--resume", "runs/r1"], ["--resume", "runs/r1", "--exploration-noise", "0.1"]):
@@ -1453,9 +1479,27 @@ def test_flags_main_changes_are_made_once_on_resume_and_restored_as_they_were(ru
         assert resumed.exploration_noise == 0.1  # as main got it
         run = Run(resumed)
         resumed.exploration_noise *= 2.0  # main again
-        run.start(envs, CPU, *parts())
-        assert resumed.exploration_noise == pytest.approx(0.18)  # as at the checkpoint, not 0.36
+        run.start(envs, CPU, *one_critic())
+        assert resumed.exploration_noise == pytest.approx(at_checkpoint)  # not scaled twice
         run.logs.close()
+
+
+def test_a_list_flag_main_changes_in_place_is_made_once_on_resume(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    args = ListFlagArgs(env_id="Pendulum-v1", run_name="r{seed}", checkpoint_frequency=1)
+    run, envs = Run(args), SeedEnvs("Pendulum-v1", [1])
+    args.noise_scales[0] *= 2.0  # main, before run.start, in place
+    run.start(envs, CPU, *one_critic())
+    run.end_step(0)
+    run.logs.close()
+    resumed = parse_args(ListFlagArgs, argv=["--resume", "runs/r1", "--noise-scales", "0.1", "0.2"])
+    assert resumed.noise_scales == [0.1, 0.2]  # as main got it
+    run = Run(resumed)
+    resumed.noise_scales[0] *= 2.0
+    run.start(envs, CPU, *one_critic())
+    assert resumed.noise_scales == [0.2, 0.2]
+    run.logs.close()
+    envs.close()
 
 
 def test_state_in_a_list_is_refused_where_checkpoints_are_written(run_of):
