@@ -122,10 +122,13 @@ class Run:
         self.caller = sys._getframe(1)
         watched = {id(x): x for x in [*nets.values(), *optimizers.values(), *parts.values()]}
         self.bound = {name: x for name, x in self.caller.f_locals.items() if id(x) in watched and x is watched[id(x)]}
-        modules = {id(m) for net in nets.values() for m in net.modules()}  # a layer of a network given is held
+        modules = {
+            id(m) for net in nets.values() for m in [*net.modules(), *ckpt.unwrapped(net).modules()]
+        }  # a layer of a network given is held
         for name, x in held(self.caller.f_locals):
             stateless = isinstance(x, torch.nn.Module) and not x.state_dict()  # a loss module, nn.MSELoss()
-            if (isinstance(x, torch.nn.Module) and id(x) not in modules and not stateless) or (
+            compiled = id(getattr(x, "_orig_mod", None)) in modules  # torch.compile(actor) held beside actor
+            if (isinstance(x, torch.nn.Module) and id(x) not in modules and not stateless and not compiled) or (
                 isinstance(x, torch.optim.Optimizer) and id(x) not in watched
             ):
                 kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"

@@ -1379,6 +1379,28 @@ def test_a_compiled_network_is_saved_as_the_network_it_wraps():
     assert torch.equal(saved["weight"], net.weight)
 
 
+def test_a_compiled_network_is_held_and_checkpointed_as_the_network_it_wraps(run_of):
+    """`actor_c = torch.compile(actor)` beside `actor`: the compiled one is the network given, not one left out; and a
+    checkpoint of a compiled network resumes into the plain one (and back), under the network's own names."""
+    run, envs = run_of(checkpoint_frequency=1)
+    actor = nn.Linear(3, 1)
+    actor_c = torch.compile(actor)  # compiles at its first call: never here
+    run.start(envs, CPU, {"actor": actor_c}, {"actor_optimizer": torch.optim.Adam(actor.parameters())})
+    run.end_step(0)  # the checkpoint of step 1
+    run.logs.close()
+    assert list(torch.load("runs/r1/checkpoint.pt", weights_only=True)["nets"]["actor"]) == ["weight", "bias"]
+    weight = actor.weight.detach().clone()
+    other, other_envs = run_of()  # the plain network given, the compiled one held beside it
+    other.start(other_envs, CPU, {"actor": actor}, {"actor_optimizer": torch.optim.Adam(actor.parameters())})
+    other.logs.close()
+    del actor, actor_c  # main, resumed, holds only the plain network
+    resumed = Run(parse_args(td3.Args, argv=["--resume", "runs/r1"]))
+    plain = nn.Linear(3, 1)
+    resumed.start(envs, CPU, {"actor": plain}, {"actor_optimizer": torch.optim.Adam(plain.parameters())})
+    assert torch.equal(plain.weight, weight)
+    resumed.logs.close()
+
+
 def test_a_tensor_an_optimizer_trains_outside_the_networks_and_parts_is_refused(run_of):
     """A Lagrange multiplier (as SAC's log_alpha) whose optimizer is given but the tensor is not: a checkpoint would
     restore Adam's state and start the multiplier from its initial value. Refused in one line naming it; accepted as a
