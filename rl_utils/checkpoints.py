@@ -120,7 +120,7 @@ OWN_KEYS += ("eval_returns", "seed_cut")
 FORMAT = 3
 
 
-def unwrapped(net):
+def uncompiled(net):
     """A torch.compile'd network's own network (its state_dict names every tensor `_orig_mod.`...): a checkpoint of
     the one resumes the other."""
     return getattr(net, "_orig_mod", net)
@@ -135,7 +135,7 @@ def snapshot(script: str, args, envs, global_step: int, nets: dict, optimizers: 
         "format": FORMAT,
         "args": vars(args),
         "global_step": global_step,
-        "nets": {name: unwrapped(net).state_dict() for name, net in nets.items()},
+        "nets": {name: uncompiled(net).state_dict() for name, net in nets.items()},
         "optimizers": {name: opt.state_dict() for name, opt in optimizers.items()},
         **{name: state_of(part) for name, part in parts.items()},
         "rng": {
@@ -167,7 +167,7 @@ def restore(checkpoint: dict, envs, nets: dict, optimizers: dict, parts: dict) -
     """Loads a snapshot() into the objects it was taken of. Returns each env's observation now (None between
     episodes)."""
     for name, net in nets.items():
-        unwrapped(net).load_state_dict(checkpoint["nets"][name])
+        uncompiled(net).load_state_dict(checkpoint["nets"][name])
     for name, opt in optimizers.items():
         state = checkpoint["optimizers"][name]
         for group, current in zip(state["param_groups"], opt.param_groups):  # --cudagraphs may differ from the run's

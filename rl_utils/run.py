@@ -122,13 +122,12 @@ class Run:
         self.caller = sys._getframe(1)
         watched = {id(x): x for x in [*nets.values(), *optimizers.values(), *parts.values()]}
         self.bound = {name: x for name, x in self.caller.f_locals.items() if id(x) in watched and x is watched[id(x)]}
-        modules = {
-            id(m) for net in nets.values() for m in [*net.modules(), *ckpt.unwrapped(net).modules()]
-        }  # a layer of a network given is held
+        # a layer of a network given is held, and a network given compiled (torch.compile) is its own network too
+        modules = {id(m) for net in nets.values() for m in [net, *ckpt.uncompiled(net).modules()]}
         for name, x in held(self.caller.f_locals):
             stateless = isinstance(x, torch.nn.Module) and not x.state_dict()  # a loss module, nn.MSELoss()
-            compiled = id(getattr(x, "_orig_mod", None)) in modules  # torch.compile(actor) held beside actor
-            if (isinstance(x, torch.nn.Module) and id(x) not in modules and not stateless and not compiled) or (
+            # ckpt.uncompiled: torch.compile(actor) held beside the actor given is that network
+            if (isinstance(x, torch.nn.Module) and id(ckpt.uncompiled(x)) not in modules and not stateless) or (
                 isinstance(x, torch.optim.Optimizer) and id(x) not in watched
             ):
                 kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
@@ -174,11 +173,11 @@ class Run:
                 if callable(getattr(part, "state_dict", None)) and not isinstance(part, ReplayBuffer):
                     in_states += tensors_in(part.state_dict())
 
+        held_storage |= storage(in_states)
+
         def is_held(p) -> bool:  # its storage, or in a part's state_dict(), itself or a copy (its shape and values)
             copies = (t for t in in_states if t.shape == p.shape and t.device == p.device)
-            return p.untyped_storage().data_ptr() in held_storage | storage(in_states) or any(
-                torch.equal(t.detach(), p.detach()) for t in copies
-            )
+            return p.untyped_storage().data_ptr() in held_storage or any(torch.equal(t.detach(), p.detach()) for t in copies)
 
         names = {id(x): name for name, x in held(self.caller.f_locals)}
         for label, optimizer in optimizers.items():

@@ -31,6 +31,7 @@ import torch.nn.utils.clip_grad as clip_grad
 from torch.func import functional_call, vmap
 from torch.utils._pytree import tree_flatten, tree_map
 
+from rl_utils.checkpoints import uncompiled
 from rl_utils.errors import refusal
 
 # every parameter stack_seeds stacked for several seeds, by id (gradient clipping finds their gradients); such a
@@ -672,7 +673,7 @@ def model_of_seed(saved: dict, k: int, num_seeds: int) -> dict:
     model = {}
     for name, x in saved.items():
         if isinstance(x, nn.Module):
-            state = getattr(x, "_orig_mod", x).state_dict()  # a torch.compile'd network saved as the network it wraps
+            state = uncompiled(x).state_dict()  # a torch.compile'd network saved as the network it wraps
             model[name] = seed_share(state, k) if num_seeds > 1 else state
         elif isinstance(x, torch.Tensor):
             model[name] = x.detach().cpu()[k : k + 1].clone()
