@@ -351,12 +351,15 @@ def check_apart(loss: torch.Tensor, name: str):
     in another seed's weights. A term a fork computes outside per_seed over the stacked parameters (an L2 penalty over
     qf.parameters(), one norm over them all) is one number in every seed's loss: it mixes the seeds, and optimize's sum
     gives each seed num_seeds times its gradient. The seeds' slices of a gradient are exactly zero when they are apart."""
-    if loss.dim() != 1 or loss.shape[0] < 2 or not loss.requires_grad:
+    if not loss.requires_grad or loss.dim() > 1:
         return
-    n = loss.shape[0]
     apart_calls[name] = calls = apart_calls.get(name, 0) + 1
     if calls > WATCHED_CALLS:
         return
+    if loss.numel() == 1:  # one number: with stacked weights in it, the seeds' losses reduced before optimize
+        check_one_per_seed(loss, name)
+        return
+    n = loss.shape[0]
     params = [p for p in list(STACKED.values()) if p.num_seeds == n and p.requires_grad]
     for k in (0, n - 1) if params else ():
         grads = torch.autograd.grad(loss[k], params, retain_graph=True, allow_unused=True)
@@ -372,6 +375,27 @@ def check_apart(loss: torch.Tensor, name: str):
             "all, a mean over the seeds) is one number in every seed's loss, which mixes the seeds and gives each seed "
             "num_seeds times its gradient; compute it inside the function run through per_seed, on one seed's weights",
         )
+
+
+def check_one_per_seed(loss: torch.Tensor, name: str):
+    """A loss of one number with a gradient in weights stacked for several seeds: the seeds' losses were reduced
+    before optimize (loss.mean(): each seed's gradient divided by the number of seeds, which SGD and clipping by
+    norm keep; loss.sum(): a reduction optimize makes itself). optimize takes them one per seed and sums them."""
+    params = [p for p in list(STACKED.values()) if p.num_seeds > 1 and p.requires_grad]
+    if not params:
+        return
+    grads = torch.autograd.grad(loss.reshape(()), params, retain_graph=True, allow_unused=True)
+    reached = [(p, g) for p, g in zip(params, grads) if g is not None]
+    if not reached or not torch.stack([(g != 0).any() for _, g in reached]).any():  # one read of the device
+        return
+    n = reached[0][0].num_seeds
+    raise refusal(
+        RuntimeError,
+        f"{name}: one number for {n} seeds' weights (a loss of shape {list(loss.shape)}): the seeds' losses were "
+        f"reduced before optimize, and a mean over them divides each seed's gradient by {n}; pass them one per seed, "
+        f"[num_seeds] as per_seed returns them (optimize({name}, ...), not optimize({name}.mean(), ...)): optimize "
+        "sums them itself",
+    )
 
 
 def per_seed(fn):

@@ -1206,6 +1206,36 @@ def test_a_penalty_over_all_the_stacked_weights_added_outside_per_seed_is_refuse
     )
 
 
+def test_the_seeds_losses_reduced_to_one_number_before_optimize_are_refused_with_several_seeds(tmp_path):
+    """optimize(qf_loss.mean(), ...): with one seed the same loss; with two, each seed's gradient halved (which SGD
+    and clipping by norm keep). Stopped at the first step, naming the loss and the fix."""
+    edit = lambda s: s.replace('optimize(qf_loss, "qf_loss"', 'optimize(qf_loss.mean(), "qf_loss"', 1)  # noqa: E731
+    one, two = tmp_path / "one", tmp_path / "two"
+    one.mkdir(), two.mkdir()
+    assert run_fork(one, edit, 1).returncode == 0
+    result = run_fork(two, edit, 2)
+    assert result.returncode == 1
+    assert (
+        result.stderr.strip()
+        .splitlines()[-1]
+        .startswith("error: qf_loss: one number for 2 seeds' weights (a loss of shape []): the seeds' losses were reduced")
+    )
+
+
+def test_the_one_number_check_passes_per_seed_losses_and_losses_without_stacked_weights():
+    net = built([4, 5])
+    x = torch.randn(2, 8, 3)
+    seeds_module.apart_calls.clear()
+    seeds_module.check_apart(per_seed(loss_fn)(x, net), "per seed")  # [2]: one per seed
+    log_alpha = torch.zeros((), requires_grad=True)
+    seeds_module.check_apart(log_alpha * 2.0, "no stacked weights")  # one number of an unstacked tensor
+    one = built([4])
+    seeds_module.check_apart(per_seed(loss_fn)(x[:1], one).mean(), "one seed")  # one seed: one number is its loss
+    for reduce in (torch.mean, torch.sum):
+        with pytest.raises(RuntimeError, match=r"^two: one number for 2 seeds' weights \(a loss of shape \[\]\)"):
+            seeds_module.check_apart(reduce(per_seed(loss_fn)(x, net)), "two")
+
+
 def test_the_seeds_apart_check_passes_apart_seeds_and_looks_at_each_losss_first_steps():
     net = built([4, 5, 6])
     x = torch.randn(3, 8, 3)
