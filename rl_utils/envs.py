@@ -215,6 +215,23 @@ def policy_probe(policy, observation_space, num_seeds: int) -> list:
     return [{"probe": {"observations": torch.as_tensor(observations), "actions": torch.as_tensor(a)}} for a in actions]
 
 
+def check_task_return(summed: float, info: dict, k: int):
+    """An evaluation episode's return, summed from the rewards env.step gave evaluate, is the task's: the one
+    make_env's episode statistics recorded below any wrapper a fork put around the env. A reward wrapper around the
+    evaluation env (TransformReward, NormalizeReward, ClipReward) would make every evaluation another number than the
+    task's return, the one the paper and the other runs report."""
+    task = info.get("episode", {}).get("r") if isinstance(info, dict) else None
+    if task is None or np.isclose(summed, float(task), rtol=1e-5, atol=1e-5):  # None: an env not made by make_env
+        return
+    raise refusal(
+        ValueError,
+        f"evaluate: env {k}'s episode returned {summed:.6g} in the rewards evaluate was given, and {float(task):.6g} "
+        "in the task's (make_env's record): a wrapper around the evaluation env changes its rewards (TransformReward, "
+        "NormalizeReward, ClipReward), so the evaluation would not be the task's return; give evaluate the env make_env "
+        "returns (a reward wrapper belongs on the training env only)",
+    )
+
+
 def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
     """Undiscounted returns [num_envs, num_episodes] of `policy` (observations [num_envs, obs_dim] -> actions), one
     env per seed, stepped side by side. The envs are re-seeded with `seeds` each time, so every evaluation sees the
@@ -229,9 +246,10 @@ def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
         for k, env in enumerate(envs):
             if episode[k] == num_episodes:  # this seed is done; the others go on
                 continue
-            obs[k], reward, terminated, truncated, _ = env.step(actions[k])
+            obs[k], reward, terminated, truncated, info = env.step(actions[k])
             returns[k, episode[k]] += reward
             if terminated or truncated:
+                check_task_return(returns[k, episode[k]], info, k)
                 episode[k] += 1
                 if episode[k] < num_episodes:
                     obs[k], _ = env.reset()

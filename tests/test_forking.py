@@ -1206,6 +1206,51 @@ def test_a_penalty_over_all_the_stacked_weights_added_outside_per_seed_is_refuse
     )
 
 
+def test_a_reward_wrapper_around_the_evaluation_env_is_refused_and_other_wrappers_pass():
+    """Evaluations report the task's return: a reward scaled (or normalised, clipped) by a wrapper around the
+    evaluation env would report another number as every evaluation, without a word."""
+    import gymnasium as gym
+
+    def still(obs):
+        return np.zeros((len(obs), 1), np.float32)
+
+    (plain,) = env_layer.evaluate(still, [env_layer.make_env("Pendulum-v1", 1)], [5], 1)[0]
+    scaled = gym.wrappers.TransformReward(env_layer.make_env("Pendulum-v1", 1), lambda r: 0.1 * r)
+    with pytest.raises(ValueError, match=r"^evaluate: env 0's episode returned -130\.57.* and -1305\.7.* in the task's"):
+        env_layer.evaluate(still, [scaled], [5], 1)
+    normalised = gym.wrappers.NormalizeObservation(env_layer.make_env("Pendulum-v1", 1))  # the rewards as they are
+    assert env_layer.evaluate(still, [normalised], [5], 1)[0, 0] == plain
+    cut = gym.wrappers.TimeLimit(env_layer.make_env("Pendulum-v1", 1), 50)  # shorter episodes: the fork's protocol
+    assert env_layer.evaluate(still, [cut], [5], 2).shape == (1, 2)
+
+
+def test_a_ppo_fork_that_wraps_its_evaluation_env_in_a_reward_scale_stops_and_one_that_wraps_its_training_env_runs(
+    tmp_path,
+):
+    source = open(os.path.join(REPO, "ppo_continuous_action.py")).read()
+    made = "make_env(args.env_id, eval_seed, run.video_folders[0], video_every=args.eval_episodes)"
+    assert made in source and "    env = make_env(args.env_id, args.seed)\n" in source
+    scale = "__import__('gymnasium').wrappers.TransformReward({}, lambda r: 0.1 * r)"
+    forks = {
+        "eval": source.replace(made, scale.format(made), 1),
+        "train": source.replace(
+            "env = make_env(args.env_id, args.seed)", "env = " + scale.format("make_env(args.env_id, args.seed)"), 1
+        ),
+    }
+    flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "256", "--num-steps", "128", "--eval-frequency", "256"]
+    results = {}
+    for name, fork in forks.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "fork_continuous_action.py").write_text(fork)
+        command = [sys.executable, "fork_continuous_action.py", *flags, "--eval-episodes", "1"]
+        results[name] = subprocess.run(
+            command, cwd=tmp_path / name, capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": REPO}
+        )
+    assert results["train"].returncode == 0, results["train"].stderr
+    assert results["eval"].returncode == 1
+    assert results["eval"].stderr.strip().splitlines()[-1].startswith("error: evaluate: env 0's episode returned ")
+
+
 def test_the_seeds_losses_reduced_to_one_number_before_optimize_are_refused_with_several_seeds(tmp_path):
     """optimize(qf_loss.mean(), ...): with one seed the same loss; with two, each seed's gradient halved (which SGD
     and clipping by norm keep). Stopped at the first step, naming the loss and the fix."""
