@@ -243,6 +243,27 @@ def python_draws() -> tuple:
 GENERATORS = (np.random.Generator, np.random.RandomState, random.Random)
 
 
+def check_trained_tensors_read(fn, n: int):
+    """With several seeds, a trained tensor (one that requires grad: a multiplier, a network's weight) that fn reads
+    from outside its arguments (its closure, a partial's arguments, the globals it names, rl_utils.gpu.probes) is not
+    cut into the seeds' rows: every seed's loss reads all of it, and its gradient reaches every seed's values."""
+    from rl_utils.gpu import probes
+
+    for label, read in probes(fn):
+        try:
+            x = read()
+        except (ValueError, KeyError, AttributeError, IndexError):  # an unfilled cell
+            continue
+        if isinstance(x, torch.Tensor) and x.requires_grad:
+            raise refusal(
+                RuntimeError,
+                f"per_seed({name_of(fn)}) with {n} seeds reads `{label}`, a trained tensor {list(x.shape)} (it requires "
+                "grad), from outside its arguments (a closure, functools.partial, a global): every seed's loss would read "
+                "all of it and its gradient reach every seed's values; give it as an argument, one row per seed "
+                "[num_seeds, ...], which per_seed cuts",
+            )
+
+
 def own_generators(fn, networks: nn.Module) -> list:
     """The random generators of a fork's own that fn reaches, [(name, generator)]: a NumPy Generator or RandomState
     or a random.Random (not SystemRandom, which has no state), itself or a method of it (rng.normal), in fn's
@@ -437,6 +458,7 @@ def per_seed(fn):
         code = code_of(fn)
         watched_calls[code] = calls = watched_calls.get(code, 0) + 1
         if calls <= WATCHED_CALLS:
+            check_trained_tensors_read(fn, n)
             own = own_generators(fn, networks)
             before = python_draws(), [generator_state(g) for _, g in own]
         else:

@@ -1267,6 +1267,37 @@ def test_the_seeds_losses_reduced_to_one_number_before_optimize_are_refused_with
     )
 
 
+TRAINED_SCALE = torch.ones(2, 1, requires_grad=True)  # a fork's per-seed multiplier, named as a global
+
+
+def scaled_by_the_global(x, net):
+    return (net(x) * TRAINED_SCALE).pow(2).mean()
+
+
+def test_a_trained_tensor_read_from_outside_a_per_seed_functions_arguments_is_refused_with_several_seeds():
+    """A [num_seeds, 1] multiplier that is trained (requires grad), closed over, behind a partial or named as a global,
+    is read whole by every seed's loss under vmap (and trained by all of them); as an argument each seed gets its
+    row. A tensor that is not trained (a constant the seeds share) is the function's to read."""
+    net, x = built([4, 5]), torch.randn(2, 8, 3)
+    scale = torch.ones(2, 1, requires_grad=True)
+
+    def closed(x, net):
+        return (net(x) * scale).pow(2).mean()
+
+    def as_argument(x, net, scale):
+        return (net(x) * scale).pow(2).mean()
+
+    partial = functools.partial(lambda scale, x, net: (net(x) * scale).pow(2).mean(), scale)
+    for fn, label in ((closed, "scale"), (partial, "fn.args[0]"), (scaled_by_the_global, "TRAINED_SCALE")):
+        with pytest.raises(RuntimeError, match=rf"with 2 seeds reads `{re.escape(label)}`, a trained tensor \[2, 1\]"):
+            per_seed(fn)(x, net)
+    assert per_seed(as_argument)(x, net, scale).shape == (2,)
+    constant = torch.full((1,), 2.0)  # a constant the seeds share
+    assert per_seed(lambda x, net: (net(x) * constant).pow(2).mean())(x, net).shape == (2,)
+    weight = torch.ones(1, requires_grad=True)  # one seed: the function as written, a trained tensor read as it reads
+    assert per_seed(lambda x, net: (net(x) * weight).pow(2).mean())(x[:1], built([4])).shape == (1,)
+
+
 def test_the_one_number_check_passes_per_seed_losses_and_losses_without_stacked_weights():
     net = built([4, 5])
     x = torch.randn(2, 8, 3)
