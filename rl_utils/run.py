@@ -50,6 +50,21 @@ def held(names: dict, depth: int = 2):
             yield from held({f"{name}[{k!r}]": v for k, v in x.items()}, depth - 1)
 
 
+def same_value(a, b) -> bool:
+    """Two of an object's attribute values (arrays, tensors, numbers) are the same, NaN equal to NaN."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        a, b = np.asarray(a), np.asarray(b)
+        return a.shape == b.shape and a.dtype == b.dtype and bool(((a == b) | ((a != a) & (b != b))).all())
+    if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
+        return (
+            isinstance(a, torch.Tensor)
+            and isinstance(b, torch.Tensor)
+            and a.shape == b.shape
+            and torch.equal(a.nan_to_num(0.123), b.nan_to_num(0.123))
+        )
+    return a == b or (a != a and b != b)
+
+
 class Run:
     """The machinery around a script's loop, in the order the loop meets it:
 
@@ -80,6 +95,7 @@ class Run:
         if self.finished:
             print(f"{', '.join(self.run_dirs)} had already finished its {args.total_timesteps} steps")
         self.guarded = 0  # how many run.stop_on_nan blocks are open
+        self.own_state = {}  # check_own_state_unchanged's record of the script's own objects: id -> (object, values)
         self.evaluation_due = None  # on --resume, the step whose evaluation the first step must make (start)
         self.video_folders = [f"videos/{os.path.basename(d)}" if args.capture_video else None for d in self.run_dirs]
         if not args.capture_video:  # nothing renders: spare dm_control its probe for a display (and its warning)
@@ -306,9 +322,10 @@ class Run:
                 )
         own = self.caller.f_globals.get("__name__")  # the script's own classes: a helper object (an OU noise)
         for name, x in held(self.caller.f_locals):
-            if type(x).__module__ != own or id(x) in held_parts or isinstance(x, (type, torch.nn.Module)):
+            if type(x).__module__ != own or id(x) in held_parts or isinstance(x, (type, torch.nn.Module, type(self.args))):
                 continue
             attributes = getattr(x, "__dict__", None)
+            self.check_own_state_unchanged(name, x, attributes if isinstance(attributes, dict) else {})
             for label, value in held(
                 {f"{name}.{k}": v for k, v in attributes.items()} if isinstance(attributes, dict) else {}, 1
             ):
@@ -325,6 +342,29 @@ class Run:
                     "hold where its schedule is, and --resume would start it again; add the scheduler there "
                     "(run.start(..., scheduler=scheduler))"
                 )
+
+    def check_own_state_unchanged(self, name: str, x, attributes: dict):
+        """An object of the script's own class that main holds outside run.start's parts (CleanRL's RunningMeanStd,
+        an OU noise's x_prev) keeps its arrays, tensors and numbers where no checkpoint holds them: once one of them
+        changes (between run.start, or the checkpoint that first met the object, and a later checkpoint), --resume
+        would start it from its initial state."""
+        values = {k: v for k, v in attributes.items() if isinstance(v, (np.ndarray, torch.Tensor, int, float, np.number))}
+        now = {
+            k: v.copy() if isinstance(v, np.ndarray) else v.detach().clone() if isinstance(v, torch.Tensor) else v
+            for k, v in values.items()
+        }
+        seen = self.own_state.setdefault(id(x), (x, now))
+        if seen[0] is not x:  # another object at a freed object's id
+            self.own_state[id(x)] = seen = (x, now)
+        changed = [k for k, v in seen[1].items() if k not in now or not same_value(v, now[k])]
+        if changed:
+            fail(
+                f"`{name}` ({type(x).__name__}), an object of the script's own class, changed since run.start or the "
+                f"checkpoint that first met it (`{name}.{changed[0]}`), and it is not in run.start's parts: a checkpoint "
+                "would not hold it, and --resume would start it from its initial state; give its class state_dict() and "
+                f"load_state_dict() (its arrays as tensors) and add it there (run.start(..., {part_name(name)}={name})), or "
+                "keep that state in a tensor given to run.start"
+            )
 
     def state(self, step: int) -> list:
         """One checkpoint per seed of the process's state at `step`."""

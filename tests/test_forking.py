@@ -1371,6 +1371,44 @@ def test_any_object_with_a_state_main_holds_but_does_not_checkpoint_is_refused_a
     assert given.returncode == 0, given.stderr
 
 
+RUNNING_MEAN = (  # CleanRL's running observation statistics, in short: a fork's own class with plain state
+    "class RunningMean:\n"
+    "    def __init__(self, shape):\n"
+    "        self.mean, self.count = np.zeros(shape), 0\n\n"
+    "    def update(self, x):\n"
+    "        self.count += len(x)\n"
+    "        self.mean = self.mean + (x.mean(0) - self.mean) * len(x) / self.count\n\n\n"
+)
+
+
+@pytest.mark.parametrize("updated", [True, False])
+def test_an_object_of_the_forks_own_class_whose_plain_state_changes_is_refused_at_a_checkpoint(updated, tmp_path):
+    """A fork's RunningMean (arrays and numbers, no state_dict) updated in the loop: no checkpoint holds it, and a
+    resumed run would start it from zero. Stopped at the first checkpoint after it changed, naming it; left as made
+    (a holder of settings), or in a run that writes no checkpoints, it is the fork's to keep."""
+
+    def edit(source):
+        fork = source.replace("def main(args: Args):\n", RUNNING_MEAN + "def main(args: Args):\n", 1)
+        fork = fork.replace(SCHEDULER_AT, "    obs_stats = RunningMean(envs.obs_dim)\n" + SCHEDULER_AT, 1)
+        add = '        rb.add(obs, infos["real_next_obs"], actions, rewards, terminations)\n'
+        return fork.replace(add, add + "        obs_stats.update(obs)\n", 1) if updated else fork
+
+    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
+    if not updated:
+        assert result.returncode == 0, result.stderr
+        return
+    assert result.returncode == 1
+    assert (
+        result.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            "error: `obs_stats` (RunningMean), an object of the script's own class, changed since run.start or the checkpoint "
+            "that first met it (`obs_stats.mean`), and it is not in run.start's parts: a checkpoint would not hold it"
+        )
+    )
+    assert run_fork(tmp_path, edit, 1).returncode == 0  # no checkpoints: nothing to resume
+
+
 GENERATOR_KINDS = {  # a generator of a fork's own, and three of its draws
     "numpy Generator": (lambda: np.random.default_rng(5), lambda g: g.random(3).tolist()),
     "numpy RandomState": (lambda: np.random.RandomState(5), lambda g: g.random_sample(3).tolist()),
