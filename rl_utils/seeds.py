@@ -57,12 +57,21 @@ def stack_seeds(networks, seeds: list, device: torch.device) -> list:
             torch.randint(2**62, (1,))  # the process's generator moves on: a next call is a later build
         else:
             draws = torch.randint(2**62, (len(seeds),)).tolist()
-        per_seed_nets = []
+        per_seed_nets, after = [], []
         for seed in draws:
             with torch.random.fork_rng(devices=[]):  # the process's own generator stays as it was
                 torch.manual_seed(seed)
                 per_seed_nets.append(networks())
+                after.append(torch.get_rng_state())
         check_networks(per_seed_nets[0])
+        if torch.equal(after[0], after[1]):  # seeded apart, the builds ended in one state: networks() seeded it
+            raise refusal(
+                RuntimeError,
+                f"stack_seeds: networks() sets torch's random generator itself (torch.manual_seed inside it?): seeds "
+                f"{seeds[0]} and {seeds[1]} were built from one state, every seed from the same initial weights; leave "
+                "the seeding to main and stack_seeds, which seed each seed's build (torch.manual_seed(args.seed) before "
+                "stack_seeds, as the scripts do)",
+            )
         stacked_buffers = set()  # by id: a buffer of a layer two networks share is stacked once
         replaced = {}  # a parameter stacked, by the id of seed 0's: a parameter tied to it (two names) gets the same
         for nets in zip(*per_seed_nets):

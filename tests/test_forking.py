@@ -1172,6 +1172,25 @@ class Tied(nn.Module):
         return self.decode(torch.tanh(self.encode(x)))
 
 
+def test_a_networks_builder_that_seeds_torchs_generator_itself_is_refused_with_several_seeds():
+    """torch.manual_seed(args.seed) inside networks() ("reproducible weights"): every seed's build would start from
+    that one state and every seed train from the same initial weights. With one seed it is that seed's build."""
+
+    def reseeding():
+        torch.manual_seed(1)
+        return [Projected()]
+
+    with pytest.raises(
+        RuntimeError, match=r"^stack_seeds: networks\(\) sets torch's random generator itself .* seeds 4 and 5"
+    ):
+        stack_seeds(reseeding, [4, 5], torch.device("cpu"))
+    (one,) = stack_seeds(reseeding, [4], torch.device("cpu"))
+    torch.manual_seed(1)
+    assert torch.equal(one.head.weight, Projected().head.weight)
+    (two,) = stack_seeds(lambda: [Projected()], [4, 5], torch.device("cpu"))  # seeded apart by stack_seeds
+    assert not torch.equal(two.head.weight[0], two.head.weight[1])
+
+
 def test_a_tied_parameter_stays_tied_per_seed():
     torch.manual_seed(4)  # as main seeds the process before its first build
     (net,) = stack_seeds(lambda: [Tied()], [4, 5], torch.device("cpu"))
