@@ -238,6 +238,7 @@ def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
     same start states."""
     envs = list(envs)
     returns = np.zeros((len(envs), num_episodes))
+    draws_before = torch_draws()
     obs = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)]
     episode = [0] * len(envs)
     while min(episode) < num_episodes:
@@ -253,4 +254,23 @@ def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
                 episode[k] += 1
                 if episode[k] < num_episodes:
                     obs[k], _ = env.reset()
+    if not all(torch.equal(a, b) for a, b in zip(draws_before, torch_draws())):
+        raise refusal(
+            RuntimeError,
+            "evaluate: the policy drew from torch's random generator (a dropout layer in training mode, a sampled "
+            "action): each evaluation would move the training run's draws, so that its numbers depend on "
+            "--eval-frequency, and report a random policy; run the networks in eval mode for the evaluation (actor.eval() "
+            "before, actor.train() after) or act deterministically",
+        )
     return returns
+
+
+def torch_draws() -> list:
+    """Where torch's generators are: the CPU's, and the current CUDA device's once CUDA is in use."""
+    states = [torch.get_rng_state()]
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        try:
+            states.append(torch.cuda.get_rng_state())
+        except RuntimeError:  # a state this build cannot read (a graph-safe generator in use): the CPU's is looked at
+            pass
+    return states

@@ -1243,6 +1243,24 @@ def test_a_reward_wrapper_around_the_evaluation_env_is_refused_and_other_wrapper
     assert env_layer.evaluate(still, [cut], [5], 2).shape == (1, 2)
 
 
+def test_a_policy_that_draws_from_torchs_generator_in_an_evaluation_is_refused():
+    """An actor with dropout evaluated in training mode: each evaluation would draw from torch's generator, which the
+    training run draws its noise and batches from, so that the run's numbers would depend on --eval-frequency."""
+    actor = nn.Sequential(nn.Linear(3, 8), nn.Dropout(0.1), nn.Linear(8, 1), nn.Tanh())
+
+    def policy(obs):
+        with torch.no_grad():
+            return actor(torch.as_tensor(obs)).numpy()
+
+    envs = [env_layer.make_env("Pendulum-v1", 1)]
+    with pytest.raises(RuntimeError, match=r"^evaluate: the policy drew from torch's random generator \(a dropout"):
+        env_layer.evaluate(policy, envs, [5], 1)
+    actor.eval()  # the fix the error names: the same policy, deterministic
+    before = torch.get_rng_state()
+    assert env_layer.evaluate(policy, envs, [5], 1).shape == (1, 1)
+    assert torch.equal(torch.get_rng_state(), before)
+
+
 def test_a_ppo_fork_that_wraps_its_evaluation_env_in_a_reward_scale_stops_and_one_that_wraps_its_training_env_runs(
     tmp_path,
 ):
