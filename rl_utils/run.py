@@ -1,13 +1,16 @@
 """A process's runs: one per seed (--num-seeds), each with its folder under runs/, its logs (rl_utils.logs), its
 checkpoints and its saved model, as an ordinary single-seed run has them."""
 
+import ast
 import contextlib
 import copy
 import dataclasses
+import inspect
 import os
 import random
 import re
 import sys
+import textwrap
 import time
 
 import numpy as np
@@ -48,6 +51,48 @@ def held(names: dict, depth: int = 2):
             yield from held({f"{name}[{i}]": v for i, v in enumerate(x)}, depth - 1)
         elif depth and isinstance(x, dict):
             yield from held({f"{name}[{k!r}]": v for k, v in x.items()}, depth - 1)
+
+
+def after_end_step(code) -> "int | None":
+    """The line of the first statement that a loop of `code` (main) runs after its run.end_step(...) in the same
+    step, or None (the source unreadable, no such statement). Loops of functions defined inside it are theirs."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(code)))
+    except (OSError, TypeError, SyntaxError, IndentationError):
+        return None
+
+    def ends_step(node) -> bool:
+        return any(
+            isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step" for n in ast.walk(node)
+        )
+
+    def after(statements) -> "int | None":
+        for i, statement in enumerate(statements):
+            if not ends_step(statement):
+                continue
+            rest = [s for s in statements[i + 1 :] if not isinstance(s, (ast.Pass, ast.Continue))]
+            if rest:
+                return rest[0].lineno
+            blocks = [getattr(statement, k, []) for k in ("body", "orelse", "finalbody")]
+            blocks += [h.body for h in getattr(statement, "handlers", [])]
+            found = [line for block in blocks if isinstance(block, list) and (line := after(block))]
+            return found[0] if found else None
+        return None
+
+    def loops(node):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
+                continue
+            if isinstance(child, (ast.For, ast.While)):
+                yield child
+            yield from loops(child)
+
+    function = tree.body[0] if tree.body else tree
+    for loop in loops(function):
+        line = after(loop.body)
+        if line:
+            return code.co_firstlineno + line - 1
+    return None
 
 
 def same_value(a, b) -> bool:
@@ -152,6 +197,14 @@ class Run:
                     + ("" if name.isidentifier() else f" (each under a name of its own: '{part_name(name)}': {name})")
                 )
         self.check_optimizers_held(nets, optimizers, parts, watched)
+        line = after_end_step(self.caller.f_code) if self.args.checkpoint_frequency else None
+        if line:
+            fail(
+                f"main's loop runs code after run.end_step ({os.path.basename(self.caller.f_code.co_filename)}:{line}), which "
+                "writes the checkpoints: a run resumed from one would never run that code for the step it was written at "
+                "(a reset, a decay, a target copy, an evaluation); end the loop's body with run.end_step(global_step), as "
+                "the scripts do"
+            )
         self.check_stacked_for_the_seeds()
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
         self.check_state_held()
