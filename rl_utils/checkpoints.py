@@ -74,6 +74,13 @@ class EpisodeRecord(gym.Wrapper):
                 f"env.step: an action of shape {list(np.shape(action))} for an env whose actions are "
                 f"{list(self.action_space.shape)}: one action a step",
             )
+        if self.episode is None:
+            raise refusal(
+                RuntimeError,
+                "env.step: the env's episode has ended (or it was never reset), and it was stepped before a reset: "
+                "evaluate(policy, envs, ...) given the training envs ends their episodes; give it envs of its own (eval_envs), "
+                "and reset an env whose episode ended",
+            )
         self.episode["actions"].append(np.array(action))
         result = self.env.step(action)
         if result[2] or result[3]:  # terminated or truncated

@@ -1526,6 +1526,39 @@ def run_of(tmp_path, monkeypatch):
 CPU = torch.device("cpu")
 
 
+def test_a_wrapper_around_make_envs_env_given_to_run_start_is_refused_in_a_run_with_checkpoints(run_of):
+    """SB3's normalised actions as a Gymnasium wrapper around each env of SeedEnvs: a checkpoint saves and rebuilds an
+    env through make_env's EpisodeRecord, beneath the wrapper (its state left out, its observations not seen). One
+    line at run.start (it was an AttributeError's traceback at the first checkpoint); without checkpoints, it runs."""
+    import gymnasium as gym
+
+    for flags in ({"checkpoint_frequency": 100}, {}):
+        run, envs = run_of(**flags)
+        envs.envs = [gym.wrappers.RescaleAction(env, np.float32(-1), np.float32(1)) for env in envs.envs]
+        if not flags:
+            run.start(envs, CPU, {}, {})
+            run.logs.close()
+            continue
+        with pytest.raises(SystemExit) as refused:
+            run.start(envs, CPU, {}, {})
+        assert str(refused.value).startswith(
+            "error: run.start's env 0 is a RescaleAction, not the env make_env made (or one it wraps): a checkpoint saves"
+        )
+
+
+def test_an_env_stepped_after_its_episode_ended_stops_in_one_line():
+    """evaluate(policy, envs, ...) given the training envs ends their episodes; the loop's next envs.step was a
+    TypeError's traceback inside the checkpoints' episode record."""
+    envs = SeedEnvs("Pendulum-v1", [1])
+    envs.reset()
+    env_layer.evaluate(lambda obs: np.zeros((len(obs), 1), np.float32), envs, [101], 1)
+    with pytest.raises(RuntimeError, match=r"^env.step: the env's episode has ended \(or it was never reset\)"):
+        envs.step(np.zeros((1, 1), np.float32))
+    envs.reset()
+    assert envs.step(np.zeros((1, 1), np.float32))[0].shape == (1, 3)
+    envs.close()
+
+
 def test_a_network_or_optimizer_in_a_list_main_holds_is_refused_unless_given_and_a_layer_of_a_given_network_is_held(
     run_of,
 ):
