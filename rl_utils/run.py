@@ -5,13 +5,16 @@ import ast
 import contextlib
 import copy
 import dataclasses
+import hashlib
 import inspect
+import linecache
 import os
 import random
 import re
 import sys
 import textwrap
 import time
+import weakref
 
 import numpy as np
 import torch
@@ -54,60 +57,101 @@ def held(names: dict, depth: int = 2):
 
 
 def after_end_step(code) -> "int | None":
-    """The line of the first statement that a loop of `code` (main) runs after its run.end_step(...) in the same
-    step, or None (the source unreadable, no such statement). Loops of functions defined inside it are theirs."""
+    """The line of the first statement that a loop of `code` (main, or a script's module) runs after its
+    run.end_step(...) in the same step, or None (the source unreadable, no such statement). A path that ends the step
+    after end_step (continue, break, return, raise) runs nothing more in it, and a counter's increment (step += 1) is
+    the loop's own; loops of functions defined inside `code` are theirs."""
     try:
-        tree = ast.parse(textwrap.dedent(inspect.getsource(code)))
+        if code.co_name == "<module>":  # inspect reads a module's code as its first statement only
+            linecache.checkcache(code.co_filename)
+            source = "".join(linecache.getlines(code.co_filename))
+        else:
+            source = textwrap.dedent(inspect.getsource(code))
+        tree = ast.parse(source)
     except (OSError, TypeError, SyntaxError, IndentationError):
         return None
+    ends = (ast.Continue, ast.Break, ast.Return, ast.Raise)
 
     def ends_step(node) -> bool:
         return any(
             isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step" for n in ast.walk(node)
         )
 
-    def after(statements) -> "int | None":
-        for i, statement in enumerate(statements):
-            if not ends_step(statement):
+    def counter(statement) -> bool:  # step += 1
+        return isinstance(statement, ast.AugAssign) and isinstance(statement.target, ast.Name)
+
+    def scan(statements, after: bool):
+        """(the line of a statement run after end_step, or None; whether a path falls through with end_step run)."""
+        for statement in statements:
+            if isinstance(statement, ends):
+                return None, False  # this path's step ends here
+            if isinstance(statement, ast.Pass) or (after and counter(statement)):
                 continue
-            rest = [s for s in statements[i + 1 :] if not isinstance(s, (ast.Pass, ast.Continue))]
-            if rest:
-                return rest[0].lineno
-            blocks = [getattr(statement, k, []) for k in ("body", "orelse", "finalbody")]
-            blocks += [h.body for h in getattr(statement, "handlers", [])]
-            found = [line for block in blocks if isinstance(block, list) and (line := after(block))]
-            return found[0] if found else None
-        return None
+            branches = None
+            if isinstance(statement, ast.If):
+                branches = [statement.body, statement.orelse]
+            elif isinstance(statement, ast.Match):
+                branches = [case.body for case in statement.cases] + [[]]
+            if branches is not None and ends_step(statement):
+                falls = False
+                for branch in branches:
+                    line, through = scan(branch, after)
+                    if line:
+                        return line, True
+                    falls = falls or through
+                after = falls
+                continue
+            if isinstance(statement, (ast.With, ast.AsyncWith)) and ends_step(statement):
+                line, after = scan(statement.body, after)
+                if line:
+                    return line, True
+                continue
+            if isinstance(statement, ast.Try) and ends_step(statement):
+                line, through = scan(statement.body + statement.orelse, after)
+                for handler in statement.handlers:
+                    line = line or scan(handler.body, after)[0]
+                line = line or scan(statement.finalbody, after or through)[0]
+                if line:
+                    return line, True
+                after = after or through
+                continue
+            if after:
+                return statement.lineno, True
+            if not isinstance(statement, (ast.For, ast.While, ast.AsyncFor)) and ends_step(statement):
+                after = True  # run.end_step(step), or a value taken from it
+        return None, after
 
     def loops(node):
         for child in ast.iter_child_nodes(node):
             if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
                 continue
-            if isinstance(child, (ast.For, ast.While)):
+            if isinstance(child, (ast.For, ast.While, ast.AsyncFor)):
                 yield child
             yield from loops(child)
 
-    function = tree.body[0] if tree.body else tree
-    for loop in loops(function):
-        line = after(loop.body)
+    body = tree if code.co_name == "<module>" or not tree.body else tree.body[0]  # a script without main: its module
+    for loop in loops(body):
+        line = scan(loop.body, False)[0]
         if line:
             return code.co_firstlineno + line - 1
     return None
 
 
-def same_value(a, b) -> bool:
-    """Two of an object's attribute values (arrays, tensors, numbers) are the same, NaN equal to NaN."""
-    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        a, b = np.asarray(a), np.asarray(b)
-        return a.shape == b.shape and a.dtype == b.dtype and bool(((a == b) | ((a != a) & (b != b))).all())
-    if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
-        return (
-            isinstance(a, torch.Tensor)
-            and isinstance(b, torch.Tensor)
-            and a.shape == b.shape
-            and torch.equal(a.nan_to_num(0.123), b.nan_to_num(0.123))
-        )
-    return a == b or (a != a and b != b)
+def fingerprint(value):
+    """(where it is, what it holds) of an array or tensor: its storage's address (a tensor's; an array's id) and a digest
+    of its shape, dtype and bytes; None for an array of Python objects or a tensor without plain storage."""
+    try:
+        if isinstance(value, np.ndarray):
+            if value.dtype == object:
+                return None
+            data, where = np.ascontiguousarray(value), id(value)
+        else:
+            where = value.untyped_storage().data_ptr()
+            data = value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy()
+    except (RuntimeError, TypeError, NotImplementedError):  # a sparse or meta tensor: not followed
+        return None
+    digest = hashlib.blake2b(data.tobytes(), digest_size=16).hexdigest()
+    return where, tuple(value.shape), str(value.dtype), digest
 
 
 class Run:
@@ -406,18 +450,22 @@ class Run:
 
     def check_own_state_unchanged(self, name: str, x, attributes: dict):
         """An object of the script's own class that main holds outside run.start's parts (CleanRL's RunningMeanStd,
-        an OU noise's x_prev) keeps its arrays, tensors and numbers where no checkpoint holds them: once one of them
-        changes (between run.start, or the checkpoint that first met the object, and a later checkpoint), --resume
-        would start it from its initial state."""
-        values = {k: v for k, v in attributes.items() if isinstance(v, (np.ndarray, torch.Tensor, int, float, np.number))}
-        now = {
-            k: v.copy() if isinstance(v, np.ndarray) else v.detach().clone() if isinstance(v, torch.Tensor) else v
-            for k, v in values.items()
-        }
-        seen = self.own_state.setdefault(id(x), (x, now))
-        if seen[0] is not x:  # another object at a freed object's id
-            self.own_state[id(x)] = seen = (x, now)
-        changed = [k for k, v in seen[1].items() if k not in now or not same_value(v, now[k])]
+        an OU noise's x_prev) keeps its arrays and tensors where no checkpoint holds them: once one of them changes
+        (between run.start, or the checkpoint that first met the object, and a later checkpoint), --resume would start
+        it from its initial state. Numbers are left alone (a stopwatch's seconds), and so is a tensor a checkpoint
+        holds (a part, a network's parameter, an optimizer's state, or a view of one)."""
+        try:
+            ref = weakref.ref(x)
+        except TypeError:  # an object without a weak reference (__slots__): not followed
+            return
+        held = self.held_tensors()
+        now = {k: fingerprint(v) for k, v in attributes.items() if isinstance(v, (np.ndarray, torch.Tensor))}
+        now = {k: v for k, v in now.items() if v is not None and v[0] not in held}
+        self.own_state = {key: seen for key, seen in self.own_state.items() if seen[0]() is not None}
+        seen = self.own_state.setdefault(id(x), (ref, now))
+        if seen[0]() is not x:  # another object at a freed object's id
+            self.own_state[id(x)] = seen = (ref, now)
+        changed = [k for k, v in seen[1].items() if k in now and now[k][1:] != v[1:]]
         if changed:
             fail(
                 f"`{name}` ({type(x).__name__}), an object of the script's own class, changed since run.start or the "
@@ -426,6 +474,29 @@ class Run:
                 f"load_state_dict() (its arrays as tensors) and add it there (run.start(..., {part_name(name)}={name})), or "
                 "keep that state in a tensor given to run.start"
             )
+
+    def held_tensors(self) -> set:
+        """Where the checkpoints' tensors and arrays are: the parts (and their attributes), the networks' parameters and
+        buffers, the optimizers' states; by object and by a tensor's storage."""
+        held = set()
+
+        def add(v):
+            held.add(id(v))
+            if isinstance(v, torch.Tensor):
+                held.add(v.untyped_storage().data_ptr())
+
+        for part in self.parts.values():
+            add(part)
+            for v in getattr(part, "__dict__", {}).values():
+                add(v)
+        for net in self.nets.values():
+            for v in [*net.parameters(), *net.buffers()]:
+                add(v)
+        for optimizer in self.optimizers.values():
+            for state in optimizer.state.values():
+                for v in state.values():
+                    add(v)
+        return held
 
     def state(self, step: int) -> list:
         """One checkpoint per seed of the process's state at `step`."""

@@ -1444,6 +1444,36 @@ def test_an_object_of_the_forks_own_class_whose_plain_state_changes_is_refused_a
     assert run_fork(tmp_path, edit, 1).returncode == 0  # no checkpoints: nothing to resume
 
 
+class ScaleDecay:  # holds a tensor given to run.start: a checkpoint has it
+    def __init__(self, scale):
+        self.scale = scale
+
+
+class Stopwatch:  # a number: the update's seconds, for a log
+    def __init__(self):
+        self.seconds = 0.0
+
+
+class RunningMeanOf3:
+    def __init__(self):
+        self.mean = np.zeros(3)
+
+
+def test_the_own_state_check_leaves_a_part_held_by_an_object_and_numbers_and_stops_a_changed_array(run_of):
+    run, envs = run_of(checkpoint_frequency=1)
+    scale = torch.ones(())
+    decay, stopwatch, stats = ScaleDecay(scale), Stopwatch(), RunningMeanOf3()  # noqa: F841 (main holds them)
+    run.start(envs, CPU, {}, {}, scale=scale)
+    decay.scale.mul_(0.5)
+    stopwatch.seconds += 1.5
+    run.end_step(0)  # the checkpoint of step 1: the scale is in it, the seconds are no training state
+    stats.mean += 1.0
+    with pytest.raises(SystemExit) as refused:
+        run.end_step(1)
+    assert str(refused.value).startswith("error: `stats` (RunningMeanOf3), an object of the script's own class, changed")
+    run.logs.close()
+
+
 GENERATOR_KINDS = {  # a generator of a fork's own, and three of its draws
     "numpy Generator": (lambda: np.random.default_rng(5), lambda g: g.random(3).tolist()),
     "numpy RandomState": (lambda: np.random.RandomState(5), lambda g: g.random_sample(3).tolist()),
@@ -1899,9 +1929,42 @@ def test_after_end_step_finds_the_first_statement_a_loop_runs_after_it():
 
         steps()
 
-    assert after_end_step(last.__code__) is None and after_end_step(inner_function.__code__) is None
+    def warm_up(run):
+        for step in range(3):
+            if step < 2:  # random actions: the step ends here
+                run.end_step(step)
+                continue
+            run.log({}, step)  # the next step's
+            run.end_step(step)
+
+    def counted(run):
+        step = 0
+        while step < 3:
+            run.end_step(step)
+            step += 1  # the loop's counter
+
+    def finally_after(run):
+        for step in range(3):
+            try:
+                run.end_step(step)
+            finally:
+                run.log({}, step)
+
+    for fine in (last, inner_function, warm_up, counted):
+        assert after_end_step(fine.__code__) is None, fine.__name__
     assert after_end_step(nested.__code__) == nested.__code__.co_firstlineno + 7
-    assert after_end_step(compile("for s in range(2):\n    run.end_step(s)\n    x = 1\n", "<string>", "exec")) is None
+    assert after_end_step(finally_after.__code__) == finally_after.__code__.co_firstlineno + 5
+
+
+def test_after_end_step_reads_a_script_whose_loop_is_at_module_level(tmp_path):
+    """CleanRL's scripts have no main: their loop is the module's."""
+    from rl_utils.run import after_end_step
+
+    path = tmp_path / "flat_continuous_action.py"
+    path.write_text("import os\nfor step in range(3):\n    run.end_step(step)\n    os.sep\n")
+    assert after_end_step(compile(path.read_text(), str(path), "exec")) == 4
+    path.write_text("import os\nfor step in range(3):\n    os.sep\n    run.end_step(step)\n")
+    assert after_end_step(compile(path.read_text(), str(path), "exec")) is None
 
 
 def test_with_several_seeds_a_network_not_built_by_stack_seeds_is_refused(run_of):
