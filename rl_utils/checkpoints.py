@@ -77,9 +77,9 @@ class EpisodeRecord(gym.Wrapper):
         if self.episode is None:
             raise refusal(
                 RuntimeError,
-                "env.step: the env's episode has ended (or it was never reset), and it was stepped before a reset: "
-                "evaluate(policy, envs, ...) given the training envs ends their episodes; give it envs of its own (eval_envs), "
-                "and reset an env whose episode ended",
+                "env.step: the env's episode has ended (or it was never reset), and it was stepped before a reset: reset "
+                "an env whose episode ended before its next step (an evaluation given the training envs, evaluate(policy, "
+                "envs, ...), ends their episodes: give it envs of its own, eval_envs)",
             )
         self.episode["actions"].append(np.array(action))
         result = self.env.step(action)

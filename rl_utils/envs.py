@@ -258,8 +258,8 @@ def evaluate(policy, envs: list, seeds: list, num_episodes: int) -> np.ndarray:
         raise refusal(
             RuntimeError,
             "evaluate: the policy drew from torch's random generator (a dropout layer in training mode, a sampled "
-            "action): each evaluation would move the training run's draws, so that its numbers depend on "
-            "--eval-frequency, and report a random policy; run the networks in eval mode for the evaluation (actor.eval() "
+            "action): an evaluation would report a random policy and, in a training run, move the run's draws, so "
+            "that its numbers depend on --eval-frequency; run the networks in eval mode for the evaluation (actor.eval() "
             "before, actor.train() after) or act deterministically",
         )
     return returns

@@ -518,9 +518,15 @@ class Run:
                     f"{quantity} became non-finite by step {step} (--cudagraphs checks every 100 steps and keeps no last "
                     "finite state; without it a run stops at the first bad update)"
                 )
-            ckpt.write_checkpoints(self.run_dirs, self.state(step), "last_good_state.pt")
             fields = [f.name for f in dataclasses.fields(self.args)]
             rates = [f"--{name.replace('_', '-')}" for name in fields if name.endswith(("lr", "learning_rate"))]
+            wrapped = [type(env).__name__ for env in self.env_list if not isinstance(env, ckpt.EpisodeRecord)]
+            if wrapped:  # a checkpoint saves an env through make_env's EpisodeRecord, which a wrapper hides
+                fail(
+                    f"{quantity} became non-finite at step {step} (try a smaller {' or '.join(rates)}); the last finite "
+                    f"state is not saved: the env given to run.start is a {wrapped[0]}, not the env make_env made"
+                )
+            ckpt.write_checkpoints(self.run_dirs, self.state(step), "last_good_state.pt")
             path = os.path.join(self.run_dirs[0], "last_good_state.pt")
             where = path if len(self.run_dirs) == 1 else f"{path} and the other seeds' folders"
             fail(

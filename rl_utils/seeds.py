@@ -64,13 +64,15 @@ def stack_seeds(networks, seeds: list, device: torch.device) -> list:
                 per_seed_nets.append(networks())
                 after.append(torch.get_rng_state())
         check_networks(per_seed_nets[0])
-        if torch.equal(after[0], after[1]):  # seeded apart, the builds ended in one state: networks() seeded it
+        if torch.equal(after[0], after[1]) or same_weights(per_seed_nets[0], per_seed_nets[1]):
             raise refusal(
                 RuntimeError,
-                f"stack_seeds: networks() sets torch's random generator itself (torch.manual_seed inside it?): seeds "
-                f"{seeds[0]} and {seeds[1]} were built from one state, every seed from the same initial weights; leave "
-                "the seeding to main and stack_seeds, which seed each seed's build (torch.manual_seed(args.seed) before "
-                "stack_seeds, as the scripts do)",
+                f"stack_seeds: seeds {seeds[0]} and {seeds[1]} were built with the same initial weights: networks() draws "
+                "them apart from the generator stack_seeds seeds for each seed (torch.manual_seed inside it, a "
+                "torch.Generator of its own, a copy of one network built before); leave the seeding to main and "
+                "stack_seeds (torch.manual_seed(args.seed) before stack_seeds, as the scripts do). To start every seed from "
+                "the same weights on purpose (pretrained ones), copy them in after stack_seeds (p.copy_(q) for each "
+                "stacked parameter p and its weight q)",
             )
         stacked_buffers = set()  # by id: a buffer of a layer two networks share is stacked once
         replaced = {}  # a parameter stacked, by the id of seed 0's: a parameter tied to it (two names) gets the same
@@ -102,6 +104,18 @@ def stack_seeds(networks, seeds: list, device: torch.device) -> list:
     for net in built:
         net.num_seeds = len(seeds)  # per_seed's check of its arguments reads it
     return built
+
+
+def same_weights(a: list, b: list) -> bool:
+    """Two builds of networks() whose drawn parameters (those not one value throughout, as a bias of zeros) are all
+    equal: the same initial weights for two seeds."""
+    drawn = [
+        (p, q)
+        for x, y in zip(a, b)
+        for p, q in zip(x.parameters(), y.parameters())
+        if p.numel() > 1 and p.shape == q.shape and not (p == p.reshape(-1)[0]).all()
+    ]
+    return bool(drawn) and all(torch.equal(p, q) for p, q in drawn)
 
 
 def check_networks(nets):
@@ -254,23 +268,50 @@ GENERATORS = (np.random.Generator, np.random.RandomState, random.Random)
 
 def check_trained_tensors_read(fn, n: int):
     """With several seeds, a trained tensor (one that requires grad: a multiplier, a network's weight) that fn reads
-    from outside its arguments (its closure, a partial's arguments, the globals it names, rl_utils.gpu.probes) is not
-    cut into the seeds' rows: every seed's loss reads all of it, and its gradient reaches every seed's values."""
-    from rl_utils.gpu import probes
+    from outside its arguments is not cut into the seeds' rows: every seed's loss reads all of it, and its gradient
+    reaches every seed's values. Looked for in fn's closure, a partial's arguments, the globals it names and its
+    helpers' (rl_utils.gpu.probes), fn's default arguments, and one level into what those hold (a list, a dict, an
+    object's attributes, a module's tensors that are not its parameters)."""
+    from rl_utils.gpu import module_of, probes
+
+    module = module_of(fn)
+
+    def look(label, x, depth=0):
+        if isinstance(x, torch.Tensor):
+            if x.requires_grad:
+                raise refusal(
+                    RuntimeError,
+                    f"per_seed({name_of(fn)}) with {n} seeds reads `{label}`, a trained tensor {list(x.shape)} (it "
+                    "requires grad), from outside its arguments (a closure, functools.partial, a global, a default "
+                    "argument): every seed's loss would read all of it and its gradient reach every seed's values; give "
+                    "it as an argument, one row per seed [num_seeds, ...], which per_seed cuts",
+                )
+            return
+        if depth == 1:
+            return
+        if isinstance(x, (list, tuple)):
+            items = [(f"{label}[{i}]", v) for i, v in enumerate(x)]
+        elif isinstance(x, dict):
+            items = [(f"{label}[{k!r}]", v) for k, v in x.items()]
+        elif isinstance(x, nn.Module):  # its tensors that are not parameters or buffers (per_seed cuts those)
+            items = [(f"{label}.{k}", v) for k, v in vars(x).items() if isinstance(v, torch.Tensor)]
+        elif type(x).__module__ == module and hasattr(x, "__dict__") and not isinstance(x, type):  # the script's own
+            items = [(f"{label}.{k}", v) for k, v in vars(x).items()]
+        else:
+            return
+        for item_label, v in items:
+            look(item_label, v, depth + 1)
 
     for label, read in probes(fn):
         try:
             x = read()
         except (ValueError, KeyError, AttributeError, IndexError):  # an unfilled cell
             continue
-        if isinstance(x, torch.Tensor) and x.requires_grad:
-            raise refusal(
-                RuntimeError,
-                f"per_seed({name_of(fn)}) with {n} seeds reads `{label}`, a trained tensor {list(x.shape)} (it requires "
-                "grad), from outside its arguments (a closure, functools.partial, a global): every seed's loss would read "
-                "all of it and its gradient reach every seed's values; give it as an argument, one row per seed "
-                "[num_seeds, ...], which per_seed cuts",
-            )
+        look(label, x)
+    function = unwrapped(fn)
+    defaults = [*(getattr(function, "__defaults__", None) or ()), *(getattr(function, "__kwdefaults__", None) or {}).values()]
+    for k, x in enumerate(defaults):
+        look(f"{name_of(fn)}'s default argument {k}", x)
 
 
 def own_generators(fn, networks: nn.Module) -> list:
@@ -422,9 +463,8 @@ def check_one_per_seed(loss: torch.Tensor, name: str):
     raise refusal(
         RuntimeError,
         f"{name}: one number for {n} seeds' weights (a loss of shape {list(loss.shape)}): the seeds' losses were "
-        f"reduced before optimize, and a mean over them divides each seed's gradient by {n}; pass them one per seed, "
-        f"[num_seeds] as per_seed returns them (optimize({name}, ...), not optimize({name}.mean(), ...)): optimize "
-        "sums them itself",
+        f"reduced before optimize (a mean divides each seed's gradient by {n}; a sum is optimize's own work); pass them "
+        f"one per seed, [num_seeds] as per_seed returns them (optimize({name}, ...), not optimize({name}.mean(), ...))",
     )
 
 

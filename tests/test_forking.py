@@ -2,6 +2,7 @@
 right numbers, or stops where it happens with one line that names the misuse and the fix (docs/forking.md). With
 one seed and with several."""
 
+import copy
 import dataclasses
 import enum
 import functools
@@ -28,6 +29,7 @@ import rl_utils.checkpoints as ckpt
 import rl_utils.envs as env_layer
 import rl_utils.seeds as seeds_module
 from rl_utils.logs import Logs
+from rl_utils.numerics import NonFiniteError
 from rl_utils.run import Run
 from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
 
@@ -1170,18 +1172,22 @@ class Tied(nn.Module):
         return self.decode(torch.tanh(self.encode(x)))
 
 
-def test_a_networks_builder_that_seeds_torchs_generator_itself_is_refused_with_several_seeds():
-    """torch.manual_seed(args.seed) inside networks() ("reproducible weights"): every seed's build would start from
-    that one state and every seed train from the same initial weights. With one seed it is that seed's build."""
+def test_a_networks_builder_that_builds_every_seed_alike_is_refused_with_several_seeds():
+    """torch.manual_seed(args.seed) inside networks() ("reproducible weights"), or a copy of a network built before:
+    every seed would train from the same initial weights. With one seed it is that seed's build."""
 
     def reseeding():
         torch.manual_seed(1)
         return [Projected()]
 
-    with pytest.raises(
-        RuntimeError, match=r"^stack_seeds: networks\(\) sets torch's random generator itself .* seeds 4 and 5"
-    ):
-        stack_seeds(reseeding, [4, 5], torch.device("cpu"))
+    template = Projected()
+
+    def copied():  # a copy of one network built before: every seed the same
+        return [copy.deepcopy(template)]
+
+    for builder in (reseeding, copied):
+        with pytest.raises(RuntimeError, match=r"^stack_seeds: seeds 4 and 5 were built with the same initial weights"):
+            stack_seeds(builder, [4, 5], torch.device("cpu"))
     (one,) = stack_seeds(reseeding, [4], torch.device("cpu"))
     torch.manual_seed(1)
     assert torch.equal(one.head.weight, Projected().head.weight)
@@ -1323,7 +1329,16 @@ def test_a_trained_tensor_read_from_outside_a_per_seed_functions_arguments_is_re
         return (net(x) * scale).pow(2).mean()
 
     partial = functools.partial(lambda scale, x, net: (net(x) * scale).pow(2).mean(), scale)
-    for fn, label in ((closed, "scale"), (partial, "fn.args[0]"), (scaled_by_the_global, "TRAINED_SCALE")):
+    held = {"scale": scale}
+
+    def in_a_dict(x, net):
+        return (net(x) * held["scale"]).pow(2).mean()
+
+    def by_default(x, net, scale=scale):
+        return (net(x) * scale).pow(2).mean()
+
+    found = [(closed, "scale"), (partial, "fn.args[0]"), (scaled_by_the_global, "TRAINED_SCALE"), (in_a_dict, "held['scale']")]
+    for fn, label in found + [(by_default, "by_default's default argument 0")]:
         with pytest.raises(RuntimeError, match=rf"with 2 seeds reads `{re.escape(label)}`, a trained tensor \[2, 1\]"):
             per_seed(fn)(x, net)
     assert per_seed(as_argument)(x, net, scale).shape == (2,)
@@ -1567,6 +1582,12 @@ def test_a_wrapper_around_make_envs_env_given_to_run_start_is_refused_in_a_run_w
         envs.envs = [gym.wrappers.RescaleAction(env, np.float32(-1), np.float32(1)) for env in envs.envs]
         if not flags:
             run.start(envs, CPU, {}, {})
+            with pytest.raises(SystemExit) as stopped:  # a NaN's last finite state cannot be saved through it
+                with run.stop_on_nan(5):
+                    raise NonFiniteError("qf_loss")
+            assert str(stopped.value).endswith(
+                "the last finite state is not saved: the env given to run.start is a RescaleAction, not the env make_env made"
+            )
             run.logs.close()
             continue
         with pytest.raises(SystemExit) as refused:
