@@ -224,10 +224,11 @@ class Run:
         for k, env in enumerate(self.env_list if self.args.checkpoint_frequency or self.checkpoints else []):
             if not isinstance(env, ckpt.EpisodeRecord):
                 fail(
-                    f"run.start's env {k} is a {type(env).__name__}, not the env make_env made (or one it wraps): a checkpoint "
-                    "saves an env, and --resume rebuilds it, through make_env's own wrapper (EpisodeRecord), which would "
-                    "leave this wrapper's state out and give the loop observations it has not seen; do in the script what "
-                    "the wrapper does (as the scripts normalise observations), or run without --checkpoint-frequency"
+                    f"run.start's env {k} is a {type(env).__name__}, not the env make_env made (or one it wraps): a "
+                    "checkpoint saves an env, and --resume rebuilds it, through make_env's own wrapper (EpisodeRecord), "
+                    "which would leave this wrapper's state out and give the loop observations it has not seen; do in the "
+                    "script what the wrapper does (as the scripts normalise observations), or run without "
+                    "--checkpoint-frequency"
                 )
         # the names main binds these networks, optimizers and parts to, which end_step watches; one it holds but did
         # not give (by a name, or in a list or dict) would be left out of the checkpoints, and start again from its
