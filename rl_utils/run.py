@@ -77,8 +77,13 @@ def after_end_step(code) -> "int | None":
             isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step" for n in ast.walk(node)
         )
 
-    def counter(statement) -> bool:  # step += 1
-        return isinstance(statement, ast.AugAssign) and isinstance(statement.target, ast.Name)
+    def counter(statement) -> bool:  # step += 1 (not a decay, noise *= 0.99)
+        return (
+            isinstance(statement, ast.AugAssign)
+            and isinstance(statement.target, ast.Name)
+            and isinstance(statement.op, ast.Add)
+            and isinstance(statement.value, ast.Constant)
+        )
 
     def scan(statements, after: bool):
         """(the line of a statement run after end_step, or None; whether a path falls through with end_step run)."""

@@ -1971,8 +1971,15 @@ def test_after_end_step_finds_the_first_statement_a_loop_runs_after_it():
             finally:
                 run.log({}, step)
 
+    def decayed(run):
+        noise = 0.1
+        for step in range(3):
+            run.end_step(step)
+            noise *= 0.99  # the next step's: a run resumed from the checkpoint would not decay it
+
     for fine in (last, inner_function, warm_up, counted):
         assert after_end_step(fine.__code__) is None, fine.__name__
+    assert after_end_step(decayed.__code__) == decayed.__code__.co_firstlineno + 4
     assert after_end_step(nested.__code__) == nested.__code__.co_firstlineno + 7
     assert after_end_step(finally_after.__code__) == finally_after.__code__.co_firstlineno + 5
 
