@@ -109,6 +109,20 @@ steps_taken = 0  # SeedEnvs.step calls in the process: which step a record is of
 DRAWS_EVERY = 100
 
 
+class OneEnvsActionSpace(gym.spaces.Box):
+    """SeedEnvs.action_space with several seeds: one env's bounds, as the networks read them. Its draws would all come
+    from one generator, not each seed's env's (CleanRL's `envs.action_space.sample()`, one per seed in a list): refused,
+    naming envs.sample_actions()."""
+
+    def sample(self, *args, **kwargs):
+        raise refusal(
+            RuntimeError,
+            f"envs.action_space.sample() with {self.num_seeds} seeds: envs.action_space is one env's bounds, and its "
+            "draws would come from one generator for every seed, not from each seed's env; draw the seeds' random "
+            "actions with envs.sample_actions(), [num_seeds, action_dim]",
+        )
+
+
 class SeedEnvs:
     """One env per seed (--num-seeds), stepped side by side, with arrays [num_seeds, ...] in and out, as Gymnasium's
     SyncVectorEnv with its same-step autoreset: where an episode ends, `step` returns the next episode's first
@@ -119,7 +133,9 @@ class SeedEnvs:
         self.envs = [
             make_env(env_id, seed, folder, video_every) for seed, folder in zip(seeds, video_folders or [None] * len(seeds))
         ]
-        self.action_space = self.envs[0].action_space  # one env's
+        space = self.envs[0].action_space  # one env's
+        self.action_space = space if len(seeds) == 1 else OneEnvsActionSpace(space.low, space.high, dtype=space.dtype)
+        self.action_space.num_seeds = len(seeds)
         self.obs_dim = int(np.prod(self.envs[0].observation_space.shape))
         self.action_dim = int(np.prod(self.action_space.shape))
         self.steps, self.draws = 0, None

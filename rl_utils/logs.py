@@ -18,10 +18,15 @@ from rl_utils.numerics import NonFiniteError
 class Logs:
     """TensorBoard, one writer per run folder (a resumed run hides what the killed process logged after its
     checkpoint), Weights and Biases with --track, and a progress bar on a terminal (in a log file the per-evaluation
-    lines say the same). Each run's hyperparameters table gives its own seed."""
+    lines say the same). Each run's hyperparameters table gives its own seed, and the flags as the run was given
+    them (`given`, before main filled any in from the task: a flag set from the action dimension would make every
+    task's runs another variant of the algorithm in plot_results.py)."""
 
-    def __init__(self, args, run_dirs: list, seeds: list, start_step: int, eval_returns: list, device: torch.device):
+    def __init__(
+        self, args, run_dirs: list, seeds: list, start_step: int, eval_returns: list, device: torch.device, given=None
+    ):
         self.seeds, self.eval_returns = seeds, eval_returns
+        given = dict(given if given is not None else vars(args))
         names = [os.path.basename(run_dir) for run_dir in run_dirs]
         if args.track:
             try:
@@ -32,14 +37,14 @@ class Logs:
                 project=args.wandb_project_name,
                 entity=args.wandb_entity,
                 sync_tensorboard=True,
-                config=vars(args),
+                config=given,
                 name=names[0],
                 monitor_gym=True,
                 save_code=True,
             )
         self.writers = [SummaryWriter(d, purge_step=start_step if args.resume else None) for d in run_dirs]
         for seed, writer in zip(seeds, self.writers if not args.resume else []):
-            table = "\n".join(f"|{key}|{value}|" for key, value in {**vars(args), "seed": seed}.items())
+            table = "\n".join(f"|{key}|{value}|" for key, value in {**given, "seed": seed}.items())
             writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
         self.pbar = tqdm(total=args.total_timesteps, initial=start_step, unit="step", disable=not sys.stderr.isatty())
         resumed = f", resumed at step {start_step}" if args.resume else ""

@@ -146,7 +146,7 @@ def fingerprint(value):
     """(where it is, what it holds) of an array or tensor: its storage's address (a tensor's; an array's id) and a digest
     of its shape, dtype and bytes; None for an array of Python objects or a tensor without plain storage."""
     try:
-        if isinstance(value, np.ndarray):
+        if isinstance(value, (np.ndarray, np.generic)):  # a NumPy number (np.float64) too: a 0-d array's update
             if value.dtype == object:
                 return None
             data, where = np.ascontiguousarray(value), id(value)
@@ -271,7 +271,7 @@ class Run:
         if self.checkpoints:
             observations = ckpt.restore(join_seeds(self.checkpoints, parts), self.env_list, nets, optimizers, parts)
             self.restore_changed_flags()
-        self.logs = Logs(self.args, self.run_dirs, self.seeds, self.start_step, self.eval_returns, device)
+        self.logs = Logs(self.args, self.run_dirs, self.seeds, self.start_step, self.eval_returns, device, self.args_given)
         self.next_checkpoint = self.start_step + self.args.checkpoint_frequency
         if isinstance(envs, SeedEnvs):
             return np.stack(observations) if observations else None
@@ -458,20 +458,21 @@ class Run:
         """An object of the script's own class that main holds outside run.start's parts (CleanRL's RunningMeanStd,
         an OU noise's x_prev) keeps its arrays and tensors where no checkpoint holds them: once one of them changes
         (between run.start, or the checkpoint that first met the object, and a later checkpoint), --resume would start
-        it from its initial state. Numbers are left alone (a stopwatch's seconds), and so is a tensor a checkpoint
-        holds (a part, a network's parameter, an optimizer's state, or a view of one)."""
+        it from its initial state. NumPy numbers count (a 0-d array's update gives one); Python numbers are left alone
+        (a stopwatch's seconds), and so is a tensor a checkpoint holds (a part, a network's parameter, an optimizer's
+        state, or a view of one)."""
         try:
             ref = weakref.ref(x)
         except TypeError:  # an object without a weak reference (__slots__): not followed
             return
         held = self.held_tensors()
-        now = {k: fingerprint(v) for k, v in attributes.items() if isinstance(v, (np.ndarray, torch.Tensor))}
+        now = {k: fingerprint(v) for k, v in attributes.items() if isinstance(v, (np.ndarray, np.generic, torch.Tensor))}
         now = {k: v for k, v in now.items() if v is not None and v[0] not in held}
         self.own_state = {key: seen for key, seen in self.own_state.items() if seen[0]() is not None}
         seen = self.own_state.setdefault(id(x), (ref, now))
         if seen[0]() is not x:  # another object at a freed object's id
             self.own_state[id(x)] = seen = (ref, now)
-        changed = [k for k, v in seen[1].items() if k in now and now[k][1:] != v[1:]]
+        changed = [k for k, v in seen[1].items() if k not in now or now[k][1:] != v[1:]]  # or no longer an array
         if changed:
             fail(
                 f"`{name}` ({type(x).__name__}), an object of the script's own class, changed since run.start or the "

@@ -367,6 +367,18 @@ def test_random_actions_drawn_as_cleanrl_draws_them_are_refused_in_one_line(tmp_
     )
 
 
+def test_random_actions_drawn_one_per_seed_from_envs_action_space_are_refused_with_several_seeds():
+    """`np.array([envs.action_space.sample() for _ in run.seeds])` has the right shape, but every seed's draw would
+    come from one generator, and seed k's env's own would never move (a seed's random phase not its solo run's)."""
+    envs = SeedEnvs("Pendulum-v1", [1, 2])
+    with pytest.raises(RuntimeError, match=r"^envs.action_space.sample\(\) with 2 seeds: .* envs.sample_actions\(\)"):
+        np.array([envs.action_space.sample() for _ in range(2)])
+    assert envs.action_space == envs.envs[0].action_space and envs.sample_actions().shape == (2, 1)
+    one = SeedEnvs("Pendulum-v1", [1])
+    assert one.action_space.sample().shape == (1,)  # one seed: its env's own space and generator
+    envs.close(), one.close()
+
+
 @pytest.mark.parametrize("num_seeds", [1, 2])
 def test_exploration_noise_drawn_from_numpy_in_the_loop_is_refused_with_several_seeds(tmp_path, num_seeds):
     """A fork of TD3 that adds NumPy noise of one seed's shape to the actor's actions in the loop, as TD3's original
@@ -1474,15 +1486,20 @@ class RunningMeanOf3:
         self.mean = np.zeros(3)
 
 
-def test_the_own_state_check_leaves_a_part_held_by_an_object_and_numbers_and_stops_a_changed_array(run_of):
+@pytest.mark.parametrize("update", ["an array", "a NumPy number"])
+def test_the_own_state_check_leaves_a_part_held_by_an_object_and_numbers_and_stops_a_changed_array(run_of, update):
     run, envs = run_of(checkpoint_frequency=1)
     scale = torch.ones(())
     decay, stopwatch, stats = ScaleDecay(scale), Stopwatch(), RunningMeanOf3()  # noqa: F841 (main holds them)
+    stats.count = np.zeros(())  # a scalar RunningMeanStd's: a 0-d array, a NumPy number once updated
     run.start(envs, CPU, {}, {}, scale=scale)
     decay.scale.mul_(0.5)
     stopwatch.seconds += 1.5
     run.end_step(0)  # the checkpoint of step 1: the scale is in it, the seconds are no training state
-    stats.mean += 1.0
+    if update == "an array":
+        stats.mean += 1.0
+    else:
+        stats.count = stats.count + 1.0  # np.float64
     with pytest.raises(SystemExit) as refused:
         run.end_step(1)
     assert str(refused.value).startswith("error: `stats` (RunningMeanOf3), an object of the script's own class, changed")
@@ -1569,6 +1586,25 @@ def run_of(tmp_path, monkeypatch):
 
 
 CPU = torch.device("cpu")
+
+
+def test_the_hyperparameters_table_gives_the_flags_as_given_not_as_main_filled_them_in(run_of, tmp_path):
+    """A fork's SAC-style flag that main fills in from the task (target_entropy = -action_dim when not given): the
+    table plot_results.py names variants by would give every task's runs another value, and every task a column of
+    its own."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from plot_results import parse_hyperparameters
+
+    run, envs = run_of()
+    given = run.args.exploration_noise
+    run.args.exploration_noise = given * 2.0  # main scales it (max_action), after Run() parsed it
+    run.start(envs, CPU, {}, {})
+    run.logs.close()
+    acc = EventAccumulator(str(tmp_path / "runs" / "r1"), size_guidance={"tensors": 0})
+    acc.Reload()
+    table = parse_hyperparameters(acc.Tensors("hyperparameters/text_summary")[0].tensor_proto.string_val[0].decode())
+    assert table["exploration_noise"] == str(given) and table["seed"] == "1"
 
 
 def test_a_wrapper_around_make_envs_env_given_to_run_start_is_refused_in_a_run_with_checkpoints(run_of):
