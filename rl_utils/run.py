@@ -142,6 +142,32 @@ def after_end_step(code) -> "int | None":
     return None
 
 
+def first_difference(a, b, module: str, depth: int = 0) -> "str | None":
+    """Where two objects of a script's classes first differ in their numbers, arrays and tensors (`.obs_rms.var`),
+    following its own classes' attributes, lists, tuples and dicts three levels down; None if nowhere."""
+    if isinstance(a, (np.ndarray, np.generic, torch.Tensor, int, float)) and not isinstance(a, bool):
+        if not isinstance(b, (np.ndarray, np.generic, torch.Tensor, int, float)):
+            return ""
+        x, y = (v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else np.asarray(v) for v in (a, b))
+        same = x.shape == y.shape and (x.dtype == object or bool(((x == y) | ((x != x) & (y != y))).all()))
+        return None if same else ""
+    if depth == 3:
+        return None
+    if isinstance(a, (list, tuple)):
+        items = [(f"[{i}]", v, b[i] if isinstance(b, (list, tuple)) and i < len(b) else None) for i, v in enumerate(a)]
+    elif isinstance(a, dict):
+        items = [(f"[{k!r}]", v, b.get(k) if isinstance(b, dict) else None) for k, v in a.items()]
+    elif type(a).__module__ == module and hasattr(a, "__dict__") and not isinstance(a, type):
+        items = [(f".{k}", v, getattr(b, k, None)) for k, v in vars(a).items()]
+    else:
+        return None
+    for label, x, y in items:
+        found = first_difference(x, y, module, depth + 1)
+        if found is not None:
+            return label + found
+    return None
+
+
 def fingerprint(value):
     """(where it is, what it holds) of an array or tensor: its storage's address (a tensor's; an array's id) and a digest
     of its shape, dtype and bytes; None for an array of Python objects or a tensor without plain storage."""
@@ -266,6 +292,14 @@ class Run:
         self.check_stacked_for_the_seeds()
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
         self.check_state_held()
+        # each part of the script's own class as it starts (before a restore): what check_parts_whole loads its
+        # state_dict() into, to see that the state_dict holds all that changed
+        own = self.caller.f_globals.get("__name__")
+        self.part_templates = {
+            name: copy.deepcopy(part)
+            for name, part in parts.items()
+            if self.args.checkpoint_frequency and type(part).__module__ == own and not isinstance(part, ReplayBuffer)
+        }
         self.evaluation_due = self.next_evaluation() if self.checkpoints else None
         observations = None
         if self.checkpoints:
@@ -505,9 +539,27 @@ class Run:
                     add(v)
         return held
 
+    def check_parts_whole(self):
+        """Each part of the script's own class (a normaliser, a rollout) comes back whole from its state_dict(): loaded
+        into a copy of the part as it started, it equals the part now. A field a fork adds to the class but not to its
+        state_dict() (a reward normaliser's statistics) would start again on --resume, silently."""
+        for name, template in self.part_templates.items():
+            part = self.parts[name]
+            restored = copy.deepcopy(template)
+            restored.load_state_dict(copy.deepcopy(part.state_dict()))
+            differs = first_difference(part, restored, type(part).__module__)
+            if differs:
+                fail(
+                    f"run.start's part `{name}` ({type(part).__name__}) does not come back whole from its state_dict(): "
+                    f"`{name}{differs}` is not what load_state_dict() restores from it (left out, or restored otherwise), "
+                    "and --resume would start it from its initial state; add it to the class's state_dict() and "
+                    "load_state_dict()"
+                )
+
     def state(self, step: int) -> list:
         """One checkpoint per seed of the process's state at `step`."""
         self.check_state_held()
+        self.check_parts_whole()
         state = ckpt.snapshot(self.script, self.args, self.env_list, step, self.nets, self.optimizers, self.parts)
         return split_seeds({**state, "args_given": self.args_given}, self.parts, self.eval_returns, self.run_dirs)
 

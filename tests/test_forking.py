@@ -1304,6 +1304,46 @@ def test_a_ppo_fork_that_wraps_its_evaluation_env_in_a_reward_scale_stops_and_on
     assert results["eval"].stderr.strip().splitlines()[-1].startswith("error: evaluate: env 0's episode returned ")
 
 
+def test_a_ppo_fork_whose_normalizer_gains_a_field_its_state_dict_leaves_out_stops_at_the_first_checkpoint(tmp_path):
+    """A reward normaliser of the rewards themselves added to PPO's Normalizer, its state_dict() unchanged: a resumed
+    run would start those statistics from zero (a cold hunt measured -1628.2 resumed against -1634.7). Stopped at the
+    first checkpoint, naming the field; PPO's own Normalizer comes back whole."""
+    source = open(os.path.join(REPO, "ppo_continuous_action.py")).read()
+    init = "        self.gamma, self.discounted_return = gamma, 0.0\n"
+    use = "        self.return_rms.update(self.discounted_return)\n"
+    assert init in source and use in source
+    fork = source.replace(init, init + "        self.reward_rms = RunningMeanStd()\n", 1)
+    fork = fork.replace(use, use + "        self.reward_rms.update(reward)\n", 1)
+    flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "512", "--num-steps", "128", "--eval-frequency", "512"]
+    results = {}
+    for name, script in (("fork", fork), ("ppo", source)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "fork_continuous_action.py").write_text(script)
+        command = [
+            sys.executable,
+            "fork_continuous_action.py",
+            *flags,
+            "--eval-episodes",
+            "1",
+            "--checkpoint-frequency",
+            "150",
+        ]
+        results[name] = subprocess.run(
+            command, cwd=tmp_path / name, capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": REPO}
+        )
+    assert results["ppo"].returncode == 0, results["ppo"].stderr
+    assert results["fork"].returncode == 1
+    assert (
+        results["fork"]
+        .stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            "error: run.start's part `normalizer` (Normalizer) does not come back whole from its state_dict(): "
+            "`normalizer.reward_rms.mean` is not what load_state_dict() restores"
+        )
+    )
+
+
 def test_the_seeds_losses_reduced_to_one_number_before_optimize_are_refused_with_several_seeds(tmp_path):
     """optimize(qf_loss.mean(), ...): with one seed the same loss; with two, each seed's gradient halved (which SGD
     and clipping by norm keep). Stopped at the first step, naming the loss and the fix."""
