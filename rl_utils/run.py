@@ -295,11 +295,13 @@ class Run:
         # each part of the script's own class as it starts (before a restore): what check_parts_whole loads its
         # state_dict() into, to see that the state_dict holds all that changed
         own = self.caller.f_globals.get("__name__")
-        self.part_templates = {
-            name: copy.deepcopy(part)
-            for name, part in parts.items()
-            if self.args.checkpoint_frequency and type(part).__module__ == own and not isinstance(part, ReplayBuffer)
-        }
+        self.part_templates = {}
+        for name, part in parts.items() if self.args.checkpoint_frequency else ():
+            if type(part).__module__ == own and not isinstance(part, ReplayBuffer):
+                try:
+                    self.part_templates[name] = copy.deepcopy(part)
+                except Exception:  # a part that cannot be copied (it holds a lock, a file): not looked at
+                    pass
         self.evaluation_due = self.next_evaluation() if self.checkpoints else None
         observations = None
         if self.checkpoints:
@@ -546,7 +548,7 @@ class Run:
         for name, template in self.part_templates.items():
             part = self.parts[name]
             restored = copy.deepcopy(template)
-            restored.load_state_dict(copy.deepcopy(part.state_dict()))
+            restored.load_state_dict(copy.deepcopy(part.state_dict()))  # what a resumed run's part would hold
             differs = first_difference(part, restored, type(part).__module__)
             if differs:
                 fail(
