@@ -77,13 +77,12 @@ def after_end_step(code) -> "int | None":
             isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step" for n in ast.walk(node)
         )
 
-    def counter(statement) -> bool:  # step += 1 (not a decay, noise *= 0.99)
-        return (
-            isinstance(statement, ast.AugAssign)
-            and isinstance(statement.target, ast.Name)
-            and isinstance(statement.op, ast.Add)
-            and isinstance(statement.value, ast.Constant)
-        )
+    def counter(statement) -> bool:  # step += 1, step += args.num_envs, left -= 1 (not a decay: noise *= 0.99, beta += 0.001)
+        if not (isinstance(statement, ast.AugAssign) and isinstance(statement.target, ast.Name)):
+            return False
+        value = statement.value
+        by = isinstance(value, (ast.Name, ast.Attribute)) or (isinstance(value, ast.Constant) and type(value.value) is int)
+        return isinstance(statement.op, (ast.Add, ast.Sub)) and by
 
     def scan(statements, after: bool):
         """(the line of a statement run after end_step, or None; whether a path falls through with end_step run)."""
@@ -142,14 +141,27 @@ def after_end_step(code) -> "int | None":
     return None
 
 
-def first_difference(a, b, module: str, depth: int = 0) -> "str | None":
-    """Where two objects of a script's classes first differ in their numbers, arrays and tensors (`.obs_rms.var`),
-    following its own classes' attributes, lists, tuples and dicts three levels down; None if nowhere."""
-    if isinstance(a, (np.ndarray, np.generic, torch.Tensor, int, float)) and not isinstance(a, bool):
-        if not isinstance(b, (np.ndarray, np.generic, torch.Tensor, int, float)):
+# a part of the script's own class above this is not copied to check its state_dict() (check_parts_whole)
+PART_CHECK_BYTES = 64 * 2**20
+NUMBERS = (np.ndarray, np.generic, torch.Tensor, int, float)
+
+
+def first_difference(a, b, module: str, skip: set, depth: int = 0) -> "str | None":
+    """Where a part (`a`) and the copy its state_dict() restores (`b`) first differ in their numbers, arrays and
+    tensors (`.obs_rms.var`), following the script's own classes' attributes, lists, tuples and dicts three levels
+    down; None if nowhere. Left alone: what `skip` holds by id (the flags, the networks, optimizers and parts a
+    checkpoint holds anyway), networks, and a field the copy holds as None (a cache load_state_dict resets)."""
+    if id(a) in skip or isinstance(a, (torch.nn.Module, torch.optim.Optimizer)) or b is None:
+        return None
+    if isinstance(a, NUMBERS) and not isinstance(a, bool):
+        if not isinstance(b, NUMBERS):
             return ""
-        x, y = (v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else np.asarray(v) for v in (a, b))
-        same = x.shape == y.shape and (x.dtype == object or bool(((x == y) | ((x != x) & (y != y))).all()))
+        try:  # as float64 tensors (a bfloat16 tensor has no NumPy form); NaN equal to NaN
+            x, y = (torch.as_tensor(v.detach().cpu() if isinstance(v, torch.Tensor) else np.asarray(v)) for v in (a, b))
+            x, y = x.double(), y.double()
+        except (TypeError, RuntimeError):  # not numbers after all (an array of objects): not compared
+            return None
+        same = x.shape == y.shape and bool(((x == y) | (x.isnan() & y.isnan())).all())
         return None if same else ""
     if depth == 3:
         return None
@@ -162,10 +174,30 @@ def first_difference(a, b, module: str, depth: int = 0) -> "str | None":
     else:
         return None
     for label, x, y in items:
-        found = first_difference(x, y, module, depth + 1)
+        found = first_difference(x, y, module, skip, depth + 1)
         if found is not None:
             return label + found
     return None
+
+
+def size_of(x, depth: int = 0) -> int:
+    """The bytes of the arrays and tensors an object holds, three levels down (its attributes, lists and dicts)."""
+    if isinstance(x, torch.Tensor):
+        return x.numel() * x.element_size()
+    if isinstance(x, np.ndarray):
+        return x.nbytes
+    if depth == 3 or isinstance(x, (str, bytes, type, torch.nn.Module)):
+        return 0
+    values = (
+        x.values()
+        if isinstance(x, dict)
+        else x
+        if isinstance(x, (list, tuple))
+        else vars(x).values()
+        if hasattr(x, "__dict__")
+        else ()
+    )
+    return sum(size_of(v, depth + 1) for v in values)
 
 
 def fingerprint(value):
@@ -297,11 +329,16 @@ class Run:
         own = self.caller.f_globals.get("__name__")
         self.part_templates = {}
         for name, part in parts.items() if self.args.checkpoint_frequency else ():
-            if type(part).__module__ == own and not isinstance(part, ReplayBuffer):
-                try:
-                    self.part_templates[name] = copy.deepcopy(part)
-                except Exception:  # a part that cannot be copied (it holds a lock, a file): not looked at
-                    pass
+            if type(part).__module__ != own or isinstance(part, ReplayBuffer) or size_of(part) > PART_CHECK_BYTES:
+                continue  # a replay buffer, or a part as large (a fork's own buffer), is not copied to be checked
+            try:
+                self.part_templates[name] = copy.deepcopy(part)
+            except Exception as error:  # a part that cannot be copied (it holds a lock, a file)
+                print(
+                    f"warning: run.start's part `{name}` cannot be copied ({error}): whether its state_dict() holds all "
+                    "its state is not checked",
+                    file=sys.stderr,
+                )
         self.evaluation_due = self.next_evaluation() if self.checkpoints else None
         observations = None
         if self.checkpoints:
@@ -508,7 +545,7 @@ class Run:
         seen = self.own_state.setdefault(id(x), (ref, now))
         if seen[0]() is not x:  # another object at a freed object's id
             self.own_state[id(x)] = seen = (ref, now)
-        changed = [k for k, v in seen[1].items() if k not in now or now[k][1:] != v[1:]]  # or no longer an array
+        changed = [k for k, v in seen[1].items() if k in now and now[k][1:] != v[1:]]
         if changed:
             fail(
                 f"`{name}` ({type(x).__name__}), an object of the script's own class, changed since run.start or the "
@@ -549,13 +586,14 @@ class Run:
             part = self.parts[name]
             restored = copy.deepcopy(template)
             restored.load_state_dict(copy.deepcopy(part.state_dict()))  # what a resumed run's part would hold
-            differs = first_difference(part, restored, type(part).__module__)
-            if differs:
+            held = [self.args, *self.nets.values(), *self.optimizers.values(), *self.parts.values()]
+            differs = first_difference(part, restored, type(part).__module__, {id(x) for x in held if x is not part})
+            if differs is not None:
                 fail(
                     f"run.start's part `{name}` ({type(part).__name__}) does not come back whole from its state_dict(): "
                     f"`{name}{differs}` is not what load_state_dict() restores from it (left out, or restored otherwise), "
                     "and --resume would start it from its initial state; add it to the class's state_dict() and "
-                    "load_state_dict()"
+                    "load_state_dict() (a cache recomputed from the state: set it to None in load_state_dict())"
                 )
 
     def state(self, step: int) -> list:

@@ -1546,6 +1546,39 @@ def test_the_own_state_check_leaves_a_part_held_by_an_object_and_numbers_and_sto
     run.logs.close()
 
 
+class NoiseState:
+    """A fork's part: the flags it reads, a scale and a bfloat16 tensor its state_dict holds, a cache load_state_dict
+    resets, and `left_out`, which its state_dict forgets."""
+
+    def __init__(self, args):
+        self.args, self.scale, self.half, self.cache = args, torch.ones(2), torch.zeros(2, dtype=torch.bfloat16), None
+        self.left_out = np.zeros(3)
+
+    def state_dict(self):
+        return {"scale": self.scale.clone(), "half": self.half.clone()}
+
+    def load_state_dict(self, state):
+        self.scale.copy_(state["scale"]), self.half.copy_(state["half"])
+        self.cache = None  # recomputed from the state
+
+
+def test_a_parts_round_trip_through_its_state_dict_leaves_the_flags_a_cache_and_bf16_and_stops_a_forgotten_field(run_of):
+    run, envs = run_of(checkpoint_frequency=1)
+    noise = NoiseState(run.args)
+    run.start(envs, CPU, {}, {}, noise=noise)
+    noise.scale.mul_(0.5), noise.half.add_(1.5)
+    noise.cache = noise.scale * 2.0
+    run.args.exploration_noise *= 0.5  # a flag decayed in the loop: the checkpoint's flags hold it
+    run.end_step(0)  # the checkpoint of step 1: the part comes back whole
+    noise.left_out += 1.0
+    with pytest.raises(SystemExit) as refused:
+        run.end_step(1)
+    assert str(refused.value).startswith(
+        "error: run.start's part `noise` (NoiseState) does not come back whole from its state_dict(): `noise.left_out` is"
+    )
+    run.logs.close()
+
+
 GENERATOR_KINDS = {  # a generator of a fork's own, and three of its draws
     "numpy Generator": (lambda: np.random.default_rng(5), lambda g: g.random(3).tolist()),
     "numpy RandomState": (lambda: np.random.RandomState(5), lambda g: g.random_sample(3).tolist()),
@@ -2035,10 +2068,11 @@ def test_after_end_step_finds_the_first_statement_a_loop_runs_after_it():
             run.end_step(step)
 
     def counted(run):
-        step = 0
+        step, left = 0, 3
         while step < 3:
             run.end_step(step)
-            step += 1  # the loop's counter
+            step += 1  # the loop's counters
+            left -= 1
 
     def finally_after(run):
         for step in range(3):
@@ -2051,7 +2085,7 @@ def test_after_end_step_finds_the_first_statement_a_loop_runs_after_it():
         noise = 0.1
         for step in range(3):
             run.end_step(step)
-            noise *= 0.99  # the next step's: a run resumed from the checkpoint would not decay it
+            noise += 0.001  # the next step's annealing: a run resumed from the checkpoint would not make it
 
     for fine in (last, inner_function, warm_up, counted):
         assert after_end_step(fine.__code__) is None, fine.__name__
