@@ -135,7 +135,8 @@ class SeedEnvs:
         ]
         space = self.envs[0].action_space  # one env's
         self.action_space = space if len(seeds) == 1 else OneEnvsActionSpace(space.low, space.high, dtype=space.dtype)
-        self.action_space.num_seeds = len(seeds)
+        if len(seeds) > 1:  # the refusal's count; one seed's space is its env's own, left as it is
+            self.action_space.num_seeds = len(seeds)
         self.obs_dim = int(np.prod(self.envs[0].observation_space.shape))
         self.action_dim = int(np.prod(self.action_space.shape))
         self.steps, self.draws = 0, None

@@ -284,10 +284,10 @@ class Run:
                 )
         self.envs, self.nets, self.optimizers, self.parts = envs, nets, optimizers, parts
         self.env_list = list(envs) if isinstance(envs, SeedEnvs) else [envs]
-        for k, env in enumerate(self.env_list if self.args.checkpoint_frequency or self.checkpoints else []):
-            if not isinstance(env, ckpt.EpisodeRecord):
+        for k, wrapper in self.wrapped_envs() if self.args.checkpoint_frequency or self.checkpoints else []:
+            if wrapper:
                 fail(
-                    f"run.start's env {k} is a {type(env).__name__}, not the env make_env made (or one it wraps): a "
+                    f"run.start's env {k} is a {wrapper}, not the env make_env made (or one it wraps): a "
                     "checkpoint saves an env, and --resume rebuilds it, through make_env's own wrapper (EpisodeRecord), "
                     "which would leave this wrapper's state out and give the loop observations it has not seen; do in the "
                     "script what the wrapper does (as the scripts normalise observations), or run without "
@@ -349,6 +349,13 @@ class Run:
         if isinstance(envs, SeedEnvs):
             return np.stack(observations) if observations else None
         return observations[0] if observations else None
+
+    def wrapped_envs(self) -> list:
+        """(k, the class name of a wrapper around make_env's env, or None) for each env given to run.start: a checkpoint
+        saves and rebuilds an env through make_env's EpisodeRecord, which a wrapper of the fork's own hides."""
+        return [
+            (k, None if isinstance(env, ckpt.EpisodeRecord) else type(env).__name__) for k, env in enumerate(self.env_list)
+        ]
 
     def check_optimizers_held(self, nets: dict, optimizers: dict, parts: dict, watched: dict):
         """Every tensor an optimizer given trains is a checkpoint's too (a parameter of a network given, a tensor part
@@ -505,11 +512,13 @@ class Run:
                     f"(run.start(..., {part_name(name)}={name}))"
                 )
         own = self.caller.f_globals.get("__name__")  # the script's own classes: a helper object (an OU noise)
+        held_tensors = None  # what the checkpoints hold, looked up once, at the first object of the script's own
         for name, x in held(self.caller.f_locals):
             if type(x).__module__ != own or id(x) in held_parts or isinstance(x, (type, torch.nn.Module, type(self.args))):
                 continue
             attributes = getattr(x, "__dict__", None)
-            self.check_own_state_unchanged(name, x, attributes if isinstance(attributes, dict) else {})
+            held_tensors = self.held_tensors() if held_tensors is None else held_tensors
+            self.check_own_state_unchanged(name, x, attributes if isinstance(attributes, dict) else {}, held_tensors)
             for label, value in held(
                 {f"{name}.{k}": v for k, v in attributes.items()} if isinstance(attributes, dict) else {}, 1
             ):
@@ -527,18 +536,17 @@ class Run:
                     "(run.start(..., scheduler=scheduler))"
                 )
 
-    def check_own_state_unchanged(self, name: str, x, attributes: dict):
+    def check_own_state_unchanged(self, name: str, x, attributes: dict, held: set):
         """An object of the script's own class that main holds outside run.start's parts (CleanRL's RunningMeanStd,
         an OU noise's x_prev) keeps its arrays and tensors where no checkpoint holds them: once one of them changes
         (between run.start, or the checkpoint that first met the object, and a later checkpoint), --resume would start
         it from its initial state. NumPy numbers count (a 0-d array's update gives one); Python numbers are left alone
         (a stopwatch's seconds), and so is a tensor a checkpoint holds (a part, a network's parameter, an optimizer's
-        state, or a view of one)."""
+        state, or a view of one: `held`, held_tensors())."""
         try:
             ref = weakref.ref(x)
         except TypeError:  # an object without a weak reference (__slots__): not followed
             return
-        held = self.held_tensors()
         now = {k: fingerprint(v) for k, v in attributes.items() if isinstance(v, (np.ndarray, np.generic, torch.Tensor))}
         now = {k: v for k, v in now.items() if v is not None and v[0] not in held}
         self.own_state = {key: seen for key, seen in self.own_state.items() if seen[0]() is not None}
@@ -582,12 +590,12 @@ class Run:
         """Each part of the script's own class (a normaliser, a rollout) comes back whole from its state_dict(): loaded
         into a copy of the part as it started, it equals the part now. A field a fork adds to the class but not to its
         state_dict() (a reward normaliser's statistics) would start again on --resume, silently."""
+        held = {id(x) for x in [self.args, *self.nets.values(), *self.optimizers.values(), *self.parts.values()]}
         for name, template in self.part_templates.items():
             part = self.parts[name]
             restored = copy.deepcopy(template)
             restored.load_state_dict(copy.deepcopy(part.state_dict()))  # what a resumed run's part would hold
-            held = [self.args, *self.nets.values(), *self.optimizers.values(), *self.parts.values()]
-            differs = first_difference(part, restored, type(part).__module__, {id(x) for x in held if x is not part})
+            differs = first_difference(part, restored, type(part).__module__, held - {id(part)})
             if differs is not None:
                 fail(
                     f"run.start's part `{name}` ({type(part).__name__}) does not come back whole from its state_dict(): "
@@ -619,7 +627,7 @@ class Run:
                 )
             fields = [f.name for f in dataclasses.fields(self.args)]
             rates = [f"--{name.replace('_', '-')}" for name in fields if name.endswith(("lr", "learning_rate"))]
-            wrapped = [type(env).__name__ for env in self.env_list if not isinstance(env, ckpt.EpisodeRecord)]
+            wrapped = [wrapper for _, wrapper in self.wrapped_envs() if wrapper]
             if wrapped:  # a checkpoint saves an env through make_env's EpisodeRecord, which a wrapper hides
                 fail(
                     f"{quantity} became non-finite at step {step} (try a smaller {' or '.join(rates)}); the last finite "

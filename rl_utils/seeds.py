@@ -266,19 +266,49 @@ def python_draws() -> tuple:
 GENERATORS = (np.random.Generator, np.random.RandomState, random.Random)
 
 
-def check_trained_tensors_read(fn, n: int):
+def reached(fn) -> list:
+    """What fn reads that is not an argument, [(label, value)]: its closure, a partial's arguments, the globals it
+    names and its helpers' (rl_utils.gpu.probes), and its default arguments."""
+    from rl_utils.gpu import probes
+
+    found = []
+    for label, read in probes(fn):
+        try:
+            found.append((label, read()))
+        except (ValueError, KeyError, AttributeError, IndexError):  # an unfilled cell
+            continue
+    function = unwrapped(fn)
+    defaults = [*(getattr(function, "__defaults__", None) or ()), *(getattr(function, "__kwdefaults__", None) or {}).values()]
+    return found + [(f"{name_of(fn)}'s default argument {k}", x) for k, x in enumerate(defaults)]
+
+
+def held_by(label: str, x, module) -> list:
+    """What a list, tuple or dict holds, or an object of the script's own classes (`module`) in its attributes,
+    [(label, value)]; [] for anything else."""
+    if isinstance(x, (list, tuple)):
+        return [(f"{label}[{i}]", v) for i, v in enumerate(x)]
+    if isinstance(x, dict):
+        return [(f"{label}[{k!r}]", v) for k, v in x.items()]
+    if type(x).__module__ == module and hasattr(x, "__dict__") and not isinstance(x, type):
+        return [(f"{label}.{k}", v) for k, v in vars(x).items()]
+    return []
+
+
+def check_trained_tensors_read(fn, n: int, reads: list):
     """With several seeds, a trained tensor (one that requires grad: a multiplier, a network's weight) that fn reads
-    from outside its arguments is not cut into the seeds' rows: every seed's loss reads all of it, and its gradient
-    reaches every seed's values. Looked for in fn's closure, a partial's arguments, the globals it names and its
-    helpers' (rl_utils.gpu.probes), fn's default arguments, and one level into what those hold (a list, a dict, an
-    object's attributes, a module's tensors that are not its parameters)."""
-    from rl_utils.gpu import module_of, probes
+    from outside its arguments (`reads`, reached(fn)) is not cut into the seeds' rows: every seed's loss reads all of
+    it, and its gradient reaches every seed's values. Looked for there and one level into what those hold (a list, a
+    dict, an object's attributes, a module's tensors that are not its parameters)."""
+    from rl_utils.gpu import module_of
 
     module = module_of(fn)
-
-    def look(label, x, depth=0):
-        if isinstance(x, torch.Tensor):
-            if x.requires_grad:
+    for label, x in reads:
+        if isinstance(x, nn.Module):  # its tensors that are not parameters or buffers (per_seed cuts those)
+            inside = [(f"{label}.{k}", v) for k, v in vars(x).items() if isinstance(v, torch.Tensor)]
+        else:
+            inside = held_by(label, x, module)
+        for label, x in [(label, x), *inside]:
+            if isinstance(x, torch.Tensor) and x.requires_grad:
                 raise refusal(
                     RuntimeError,
                     f"per_seed({name_of(fn)}) with {n} seeds reads `{label}`, a trained tensor {list(x.shape)} (it "
@@ -286,40 +316,14 @@ def check_trained_tensors_read(fn, n: int):
                     "argument): every seed's loss would read all of it and its gradient reach every seed's values; give "
                     "it as an argument, one row per seed [num_seeds, ...], which per_seed cuts",
                 )
-            return
-        if depth == 1:
-            return
-        if isinstance(x, (list, tuple)):
-            items = [(f"{label}[{i}]", v) for i, v in enumerate(x)]
-        elif isinstance(x, dict):
-            items = [(f"{label}[{k!r}]", v) for k, v in x.items()]
-        elif isinstance(x, nn.Module):  # its tensors that are not parameters or buffers (per_seed cuts those)
-            items = [(f"{label}.{k}", v) for k, v in vars(x).items() if isinstance(v, torch.Tensor)]
-        elif type(x).__module__ == module and hasattr(x, "__dict__") and not isinstance(x, type):  # the script's own
-            items = [(f"{label}.{k}", v) for k, v in vars(x).items()]
-        else:
-            return
-        for item_label, v in items:
-            look(item_label, v, depth + 1)
-
-    for label, read in probes(fn):
-        try:
-            x = read()
-        except (ValueError, KeyError, AttributeError, IndexError):  # an unfilled cell
-            continue
-        look(label, x)
-    function = unwrapped(fn)
-    defaults = [*(getattr(function, "__defaults__", None) or ()), *(getattr(function, "__kwdefaults__", None) or {}).values()]
-    for k, x in enumerate(defaults):
-        look(f"{name_of(fn)}'s default argument {k}", x)
 
 
-def own_generators(fn, networks: nn.Module) -> list:
+def own_generators(fn, networks: nn.Module, reads: list) -> list:
     """The random generators of a fork's own that fn reaches, [(name, generator)]: a NumPy Generator or RandomState
-    or a random.Random (not SystemRandom, which has no state), itself or a method of it (rng.normal), in fn's
-    closure, the globals it names or its helpers' (rl_utils.gpu.probes), in a list or dict there, among the
-    attributes of an object of the script's own classes there (an OU noise's self.rng), or of the networks'."""
-    from rl_utils.gpu import module_of, probes
+    or a random.Random (not SystemRandom, which has no state), itself or a method of it (rng.normal), among what fn
+    reads (`reads`, reached(fn)), in a list or dict there, among the attributes of an object of the script's own
+    classes there (an OU noise's self.rng), or of the networks'."""
+    from rl_utils.gpu import module_of
 
     found = {}
 
@@ -329,24 +333,11 @@ def own_generators(fn, networks: nn.Module) -> list:
             if not isinstance(x, random.SystemRandom):
                 found.setdefault(id(x), (label, x))
             return
-        if depth == 2:
-            return
-        if isinstance(x, (list, tuple)):
-            for i, v in enumerate(x):
-                look(f"{label}[{i}]", v, depth + 1)
-        elif isinstance(x, dict):
-            for k, v in x.items():
-                look(f"{label}[{k!r}]", v, depth + 1)
-        elif type(x).__module__ == module and hasattr(x, "__dict__") and not isinstance(x, type):
-            for k, v in vars(x).items():
-                look(f"{label}.{k}", v, depth + 1)
+        for item_label, v in held_by(label, x, module) if depth < 2 else ():
+            look(item_label, v, depth + 1)
 
     module = module_of(fn)
-    for label, read in probes(fn):
-        try:
-            x = read()
-        except (ValueError, KeyError, AttributeError, IndexError):  # an unfilled cell
-            continue
+    for label, x in reads:
         look(label, x)
     for network in networks.networks:
         for name, layer in network.named_modules():
@@ -507,8 +498,9 @@ def per_seed(fn):
         code = code_of(fn)
         watched_calls[code] = calls = watched_calls.get(code, 0) + 1
         if calls <= WATCHED_CALLS:
-            check_trained_tensors_read(fn, n)
-            own = own_generators(fn, networks)
+            reads = reached(fn)
+            check_trained_tensors_read(fn, n, reads)
+            own = own_generators(fn, networks, reads)
             before = python_draws(), [generator_state(g) for _, g in own]
         else:
             before = None

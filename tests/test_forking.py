@@ -324,6 +324,16 @@ def run_fork(tmp_path, edit, num_seeds=1, *extra):
     return subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
 
 
+def assert_one_seed_runs_and_two_stop(tmp_path, edit, error_start: str):
+    """The fork runs to its end with one seed and stops with two, its last line of stderr starting `error_start`."""
+    one, two = tmp_path / "one", tmp_path / "two"
+    one.mkdir(), two.mkdir()
+    assert run_fork(one, edit, 1).returncode == 0
+    result = run_fork(two, edit, 2)
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines()[-1].startswith(error_start)
+
+
 @needs_cuda
 def test_a_fork_with_a_float_learning_rate_schedule_stops_under_cudagraphs(tmp_path):
     """A fork of TD3 that halves its critic's learning rate at step 300, as a scheduler would (a float in the
@@ -1007,15 +1017,8 @@ def test_a_value_over_every_seed_logged_as_one_is_refused_with_several_seeds(tmp
     def edit(source):
         return source.replace(anchor, f'            logs = {{"losses/qf_max": {logged}, "losses/qf_values":', 1)
 
-    one, two = tmp_path / "one", tmp_path / "two"
-    one.mkdir(), two.mkdir()
-    assert run_fork(one, edit, 1).returncode == 0
-    result = run_fork(two, edit, 2)
-    assert result.returncode == 1
-    assert (
-        result.stderr.strip()
-        .splitlines()[-1]
-        .startswith(f"error: run.log: `losses/qf_max` is {what} for 2 seeds: log one value per seed, a tensor [2]")
+    assert_one_seed_runs_and_two_stop(
+        tmp_path, edit, f"error: run.log: `losses/qf_max` is {what} for 2 seeds: log one value per seed, a tensor [2]"
     )
 
 
@@ -1229,15 +1232,10 @@ def test_a_penalty_over_all_the_stacked_weights_added_outside_per_seed_is_refuse
     seeds mixed). Stopped at the first step, naming the loss."""
     anchor = '            optimize(qf_loss, "qf_loss", q_optimizer)\n'
     penalty = "            qf_loss = qf_loss + 1e-3 * sum(p.pow(2).sum() for p in qf.parameters())\n"
-    one, two = tmp_path / "one", tmp_path / "two"
-    one.mkdir(), two.mkdir()
-    assert run_fork(one, lambda s: s.replace(anchor, penalty + anchor, 1), 1).returncode == 0
-    result = run_fork(two, lambda s: s.replace(anchor, penalty + anchor, 1), 2)
-    assert result.returncode == 1
-    assert (
-        result.stderr.strip()
-        .splitlines()[-1]
-        .startswith("error: qf_loss: seed index 0's loss has a gradient in other seeds' weights (a parameter [2, ")
+    assert_one_seed_runs_and_two_stop(
+        tmp_path,
+        lambda s: s.replace(anchor, penalty + anchor, 1),
+        "error: qf_loss: seed index 0's loss has a gradient in other seeds' weights (a parameter [2, ",
     )
 
 
@@ -1348,15 +1346,8 @@ def test_the_seeds_losses_reduced_to_one_number_before_optimize_are_refused_with
     """optimize(qf_loss.mean(), ...): with one seed the same loss; with two, each seed's gradient halved (which SGD
     and clipping by norm keep). Stopped at the first step, naming the loss and the fix."""
     edit = lambda s: s.replace('optimize(qf_loss, "qf_loss"', 'optimize(qf_loss.mean(), "qf_loss"', 1)  # noqa: E731
-    one, two = tmp_path / "one", tmp_path / "two"
-    one.mkdir(), two.mkdir()
-    assert run_fork(one, edit, 1).returncode == 0
-    result = run_fork(two, edit, 2)
-    assert result.returncode == 1
-    assert (
-        result.stderr.strip()
-        .splitlines()[-1]
-        .startswith("error: qf_loss: one number for 2 seeds' weights (a loss of shape []): the seeds' losses were reduced")
+    assert_one_seed_runs_and_two_stop(
+        tmp_path, edit, "error: qf_loss: one number for 2 seeds' weights (a loss of shape []): the seeds' losses were reduced"
     )
 
 
