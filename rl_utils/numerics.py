@@ -6,7 +6,7 @@ import contextlib
 
 import torch
 
-from rl_utils.seeds import check_apart
+from rl_utils.seeds import check_apart, record_checked
 
 
 class NonFiniteError(Exception):
@@ -22,6 +22,7 @@ def check_finite(value: torch.Tensor, name: str):
     if not torch.isfinite(value).all():
         raise NonFiniteError(name)
     check_apart(value, name)
+    record_checked(value)
 
 
 def bf16_autocast(device: torch.device, enabled: bool):

@@ -2,11 +2,13 @@
 checkpoints and its saved model, as an ordinary single-seed run has them."""
 
 import ast
+import collections
 import contextlib
 import copy
 import dataclasses
 import hashlib
 import inspect
+import itertools
 import linecache
 import os
 import random
@@ -28,7 +30,7 @@ from rl_utils.envs import SeedEnvs, policy_probe
 from rl_utils.errors import fail, refusal
 from rl_utils.logs import Logs
 from rl_utils.numerics import NonFiniteError
-from rl_utils.seeds import join_seeds, model_of_seed, split_seeds
+from rl_utils.seeds import join_seeds, model_of_seed, split_seeds, watch_steps
 
 
 def part_name(name: str) -> str:
@@ -56,11 +58,9 @@ def held(names: dict, depth: int = 2):
             yield from held({f"{name}[{k!r}]": v for k, v in x.items()}, depth - 1)
 
 
-def after_end_step(code) -> "int | None":
-    """The line of the first statement that a loop of `code` (main, or a script's module) runs after its
-    run.end_step(...) in the same step, or None (the source unreadable, no such statement). A path that ends the step
-    after end_step (continue, break, return, raise) runs nothing more in it, and a counter's increment (step += 1) is
-    the loop's own; loops of functions defined inside `code` are theirs."""
+def main_body(code) -> "ast.AST | None":
+    """The syntax tree of `code` (main, or a script's module: a script without main), its lines numbered from 1 at
+    code's first; None if its source cannot be read (exec)."""
     try:
         if code.co_name == "<module>":  # inspect reads a module's code as its first statement only
             linecache.checkcache(code.co_filename)
@@ -70,12 +70,179 @@ def after_end_step(code) -> "int | None":
         tree = ast.parse(source)
     except (OSError, TypeError, SyntaxError, IndentationError):
         return None
-    ends = (ast.Continue, ast.Break, ast.Return, ast.Raise)
+    return tree if code.co_name == "<module>" or not tree.body else tree.body[0]
 
-    def ends_step(node) -> bool:
+
+def loops(node):
+    """The loops `node` runs, outermost first; those of the functions and classes it defines are theirs."""
+    for child in ast.iter_child_nodes(node):
+        if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
+            continue
+        if isinstance(child, (ast.For, ast.While, ast.AsyncFor)):
+            yield child
+        yield from loops(child)
+
+
+def calls_end_step(node) -> bool:
+    return any(
+        isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step" for n in ast.walk(node)
+    )
+
+
+# methods that change their object in place: a list's, a deque's, a dict's, a set's (a tensor's end with "_": mul_)
+CHANGERS = {"append", "extend", "appendleft", "extendleft", "insert", "pop", "popleft", "popitem", "remove", "clear"}
+CHANGERS |= {"update", "add", "discard", "setdefault", "rotate", "sort", "reverse"}
+
+
+def changed_in_place(node) -> "str | None":
+    """The plain name whose object `node` changes in place (returns.append(r), noise.mul_(0.99), counts[0] += 1), or
+    None."""
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and isinstance(node.func.value, ast.Name):
+        method = node.func.attr
+        if method in CHANGERS or (method.endswith("_") and not method.startswith("_")):
+            return node.func.value.id
+    if isinstance(node, (ast.Assign, ast.AugAssign)):
+        for target in node.targets if isinstance(node, ast.Assign) else [node.target]:
+            if isinstance(target, ast.Subscript) and isinstance(target.value, ast.Name):
+                return target.value.id
+    return None
+
+
+def name_events(node, local=frozenset()):
+    """(name, what, line) for each plain name `node` reads (what: "read"), binds ("set") or changes in place
+    ("changed", which reads it too), in the order Python does it (an assignment's value before its target; `x += 1`
+    reads x first); what functions and lambdas defined there read is left out, as are a comprehension's own names."""
+    changed = changed_in_place(node)
+    if changed and changed not in local:
+        yield changed, "changed", node.lineno
+    if isinstance(node, ast.Name):
+        if node.id not in local:
+            yield node.id, "read" if isinstance(node.ctx, ast.Load) else "set", node.lineno
+        return
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        yield from (e for d in node.decorator_list for e in name_events(d, local))
+        yield node.name, "set", node.lineno
+        return
+    if isinstance(node, ast.Lambda):
+        return
+    if isinstance(node, (ast.ListComp, ast.SetComp, ast.GeneratorExp, ast.DictComp)):
+        own = local | {n.id for g in node.generators for n in ast.walk(g.target) if isinstance(n, ast.Name)}
+        yield from name_events(node.generators[0].iter, local)
+        parts = [*(x for g in node.generators for x in [*g.ifs]), *(g.iter for g in node.generators[1:])]
+        parts += [node.key, node.value] if isinstance(node, ast.DictComp) else [node.elt]
+        for part in parts:
+            yield from name_events(part, own)
+        return
+    if isinstance(node, ast.AugAssign):
+        if isinstance(node.target, ast.Name) and node.target.id not in local:
+            yield node.target.id, "read", node.lineno
+        order = [node.value, node.target]
+    elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+        order = [node.value] if node.value is not None else []
+        order += node.targets if isinstance(node, ast.Assign) else [node.target]
+    elif isinstance(node, ast.NamedExpr):
+        order = [node.value, node.target]
+    elif isinstance(node, (ast.For, ast.AsyncFor)):
+        order = [node.iter, node.target, *node.body, *node.orelse]
+    else:
+        order = ast.iter_child_nodes(node)
+    for child in order:
+        yield from name_events(child, local)
+
+
+NOT_A_LITERAL = object()
+
+
+@dataclasses.dataclass
+class Carried:
+    """A plain local main's loop carries from one step to the next (carried_locals)."""
+
+    name: str
+    line: int  # where the loop first reads it (or changes it in place)
+    set_at: "int | None"  # the line of its last binding before the loop, if any
+    literal: object  # that binding's value if it is a literal (0.0, None, -1e9), else NOT_A_LITERAL
+
+
+def carried_locals(code, given=frozenset()) -> list:
+    """Each plain local of `code` (main, or a script's module) that its loop with run.end_step carries from one step
+    to the next: read in the loop before the loop sets it (noise *= 0.99, best = max(best, ret), a recurrent state), or
+    changed there in place (returns.append(ret)); no checkpoint holds it, so --resume starts it again from its value
+    before the loop. Left out: the names in `given` (what run.start was given: the checkpoints hold them), the loop's
+    own variable, and what run.start restores: its return and run.start_step, and names computed before the loop from
+    them or, after run.start, from what it was given (alpha = log_alpha.exp()). [] if the source cannot be read."""
+    body = main_body(code)
+    loop = next((loop for loop in loops(body) if calls_end_step(loop)), None) if body is not None else None
+    if loop is None:
+        return []
+    runs = {
+        n.func.value.id
+        for n in ast.walk(loop)
+        if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step"
+        if isinstance(n.func.value, ast.Name)
+    }
+
+    def from_run(node) -> bool:  # run.start(...) or run.start_step
         return any(
-            isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step" for n in ast.walk(node)
+            isinstance(n, ast.Attribute) and n.attr in ("start", "start_step") and getattr(n.value, "id", None) in runs
+            for n in ast.walk(node)
         )
+
+    kinds = (ast.Assign, ast.AnnAssign, ast.AugAssign, ast.NamedExpr)
+    before = sorted(
+        (n for n in ast.walk(body) if isinstance(n, kinds) and n.value is not None and n.lineno < loop.lineno),
+        key=lambda n: (n.lineno, n.col_offset),
+    )
+    started = min((n.lineno for n in ast.walk(body) if isinstance(n, ast.Call) and from_run(n.func)), default=loop.lineno)
+    restored, set_at, literal = set(), {}, {}
+    for node in before:
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+        names = [n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)]
+        read = {n.id for n in ast.walk(node.value) if isinstance(n, ast.Name)}
+        if from_run(node.value) or read & restored or (node.lineno >= started and read & set(given)):
+            restored |= set(names)
+        values = {}
+        if isinstance(node, (ast.Assign, ast.AnnAssign, ast.NamedExpr)) and len(targets) == 1:
+            target = targets[0]
+            pairs = [(target, node.value)]
+            if (
+                isinstance(target, ast.Tuple)
+                and isinstance(node.value, ast.Tuple)
+                and len(target.elts) == len(node.value.elts)
+            ):
+                pairs = list(zip(target.elts, node.value.elts))
+            for t, v in pairs:
+                if isinstance(t, ast.Name):
+                    try:
+                        values[t.id] = ast.literal_eval(v)
+                    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
+                        pass
+        for name in names:
+            set_at[name] = code.co_firstlineno + node.lineno - 1
+            literal[name] = values.get(name, NOT_A_LITERAL)
+    own = {n.id for n in ast.walk(loop.target) if isinstance(n, ast.Name)} if isinstance(loop, ast.For) else set()
+    events = list(name_events(ast.Module(body=[*loop.body, *loop.orelse], type_ignores=[])))
+    if isinstance(loop, ast.While):
+        events = [*name_events(loop.test), *events]
+    carrying = {name for name, what, _ in events if what != "read"}  # set or changed in the loop
+    first = {}
+    for name, what, line in events:
+        first.setdefault(name, (what, line))
+    return [
+        Carried(name, code.co_firstlineno + line - 1, set_at.get(name), literal.get(name, NOT_A_LITERAL))
+        for name, (what, line) in first.items()
+        if what != "set" and name in carrying and name not in restored | own | set(given)
+    ]
+
+
+def after_end_step(code) -> "int | None":
+    """The line of the first statement that a loop of `code` (main, or a script's module) runs after its
+    run.end_step(...) in the same step, or None (the source unreadable, no such statement). A path that ends the step
+    after end_step (continue, break, return, raise) runs nothing more in it, and a counter's increment (step += 1) is
+    the loop's own; loops of functions defined inside `code` are theirs."""
+    body = main_body(code)
+    if body is None:
+        return None
+    ends = (ast.Continue, ast.Break, ast.Return, ast.Raise)
 
     def counter(statement) -> bool:  # step += 1, step += args.num_envs, left -= 1 (not a decay: noise *= 0.99, beta += 0.001)
         if not (isinstance(statement, ast.AugAssign) and isinstance(statement.target, ast.Name)):
@@ -96,7 +263,7 @@ def after_end_step(code) -> "int | None":
                 branches = [statement.body, statement.orelse]
             elif isinstance(statement, ast.Match):
                 branches = [case.body for case in statement.cases] + [[]]
-            if branches is not None and ends_step(statement):
+            if branches is not None and calls_end_step(statement):
                 falls = False
                 for branch in branches:
                     line, through = scan(branch, after)
@@ -105,12 +272,12 @@ def after_end_step(code) -> "int | None":
                     falls = falls or through
                 after = falls
                 continue
-            if isinstance(statement, (ast.With, ast.AsyncWith)) and ends_step(statement):
+            if isinstance(statement, (ast.With, ast.AsyncWith)) and calls_end_step(statement):
                 line, after = scan(statement.body, after)
                 if line:
                     return line, True
                 continue
-            if isinstance(statement, ast.Try) and ends_step(statement):
+            if isinstance(statement, ast.Try) and calls_end_step(statement):
                 line, through = scan(statement.body + statement.orelse, after)
                 for handler in statement.handlers:
                     line = line or scan(handler.body, after)[0]
@@ -121,19 +288,10 @@ def after_end_step(code) -> "int | None":
                 continue
             if after:
                 return statement.lineno, True
-            if not isinstance(statement, (ast.For, ast.While, ast.AsyncFor)) and ends_step(statement):
+            if not isinstance(statement, (ast.For, ast.While, ast.AsyncFor)) and calls_end_step(statement):
                 after = True  # run.end_step(step), or a value taken from it
         return None, after
 
-    def loops(node):
-        for child in ast.iter_child_nodes(node):
-            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
-                continue
-            if isinstance(child, (ast.For, ast.While, ast.AsyncFor)):
-                yield child
-            yield from loops(child)
-
-    body = tree if code.co_name == "<module>" or not tree.body else tree.body[0]  # a script without main: its module
     for loop in loops(body):
         line = scan(loop.body, False)[0]
         if line:
@@ -215,6 +373,31 @@ def fingerprint(value):
         return None
     digest = hashlib.blake2b(data.tobytes(), digest_size=16).hexdigest()
     return where, tuple(value.shape), str(value.dtype), digest
+
+
+CARRIED_FIX = (
+    "compute it from global_step (0.1 * 0.99 ** global_step), or keep it in a flag (args.exploration_noise *= 0.999, which "
+    "--resume restores) or in a tensor given to run.start's parts and changed in place (noise.mul_(0.999), a row per seed)"
+)
+
+
+def carried_state(x, depth: int = 0):
+    """What --resume would have to bring back of a value main's loop carries, to compare: a number's or string's repr
+    (NaN equals NaN), an array's or tensor's shape, dtype and bytes, the items of a list, tuple, deque, dict or set
+    (three levels down, the first 1,000), another object's identity."""
+    if x is None or isinstance(x, (bool, int, float, complex, str, bytes)):
+        return repr(x)
+    if isinstance(x, (np.ndarray, np.generic, torch.Tensor)):
+        seen = fingerprint(x)
+        return seen[1:] if seen else ("object", id(x))
+    if depth < 3 and isinstance(x, (list, tuple, collections.deque)):
+        return type(x).__name__, len(x), tuple(carried_state(v, depth + 1) for v in itertools.islice(x, 1000))
+    if depth < 3 and isinstance(x, dict):
+        items = itertools.islice(x.items(), 1000)
+        return "dict", len(x), tuple((repr(k), carried_state(v, depth + 1)) for k, v in items)
+    if depth < 3 and isinstance(x, (set, frozenset)):
+        return "set", len(x), frozenset(repr(v) for v in itertools.islice(x, 1000))
+    return "object", id(x)
 
 
 class Run:
@@ -321,7 +504,22 @@ class Run:
                 "(a reset, a decay, a target copy, an evaluation); end the loop's body with run.end_step(global_step), as "
                 "the scripts do"
             )
+        # what main's loop carries from step to step outside the checkpoints, as it is before the loop: compared at
+        # each checkpoint (check_carried), where a change would be lost on --resume
+        self.carried = {}
+        for carried in carried_locals(self.caller.f_code, set(self.bound)) if self.args.checkpoint_frequency else []:
+            if carried.name in self.caller.f_locals and (carried.set_at is None or carried.set_at < self.caller.f_lineno):
+                self.carried[carried.name] = (carried, carried_state(self.caller.f_locals[carried.name]))
+            elif carried.literal is not NOT_A_LITERAL:  # bound after run.start: to a literal, 0.0 or None
+                self.carried[carried.name] = (carried, carried_state(carried.literal))
+            else:
+                fail(
+                    f"{self.carried_line(carried)}, and no checkpoint holds it: --resume would start it again from its "
+                    f"value before the loop ({os.path.basename(self.caller.f_code.co_filename)}:{carried.set_at}); "
+                    + CARRIED_FIX
+                )
         self.check_stacked_for_the_seeds()
+        watch_steps(optimizers, len(self.seeds))  # with several seeds: each step's gradients from a loss optimize took
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
         self.check_state_held()
         # each part of the script's own class as it starts (before a restore): what check_parts_whole loads its
@@ -563,6 +761,21 @@ class Run:
                 "keep that state in a tensor given to run.start"
             )
 
+    def carried_line(self, carried) -> str:
+        file = os.path.basename(self.caller.f_code.co_filename)
+        return f"main's loop carries `{carried.name}` from one step to the next ({file}:{carried.line})"
+
+    def check_carried(self, step: int):
+        """Each plain local main's loop carries from step to step (run.start's carried_locals) is at a checkpoint what
+        it was before the loop (a per-episode sum reset as the episode ends, a flag): else --resume, which starts it
+        again from that value, would go on with another."""
+        for carried, before in self.carried.values():
+            if carried_state(self.caller.f_locals.get(carried.name)) != before:
+                fail(
+                    f"{self.carried_line(carried)}, and by step {step} it is no longer what it was before the loop: no "
+                    "checkpoint holds it, so --resume would start it again from that value; " + CARRIED_FIX
+                )
+
     def held_tensors(self) -> set:
         """Where the checkpoints' tensors and arrays are: the parts (and their attributes), the networks' parameters and
         buffers, the optimizers' states; by object and by a tensor's storage."""
@@ -675,6 +888,7 @@ class Run:
                     f"{name}.mul_(...); an object: its load_state_dict(...))"
                 )
         if args.checkpoint_frequency and can_checkpoint and self.next_checkpoint <= step + 1 < args.total_timesteps:
+            self.check_carried(step + 1)
             ckpt.write_checkpoints(self.run_dirs, self.state(step + 1))
             self.next_checkpoint = step + 1 + args.checkpoint_frequency
 

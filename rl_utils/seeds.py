@@ -439,6 +439,89 @@ def check_apart(loss: torch.Tensor, name: str):
         )
 
 
+# With several seeds, the optimizers run.start was given, each watched on its first WATCHED_CALLS steps (their count
+# here): a step's gradients come from losses optimize took, whole (check_finite saw the loss, and its backward gave
+# each of its values a gradient of 1: loss.sum(), not loss.mean()), whose trained tensors (the leaves of its graph,
+# by id) are in `checked_leaves`. The watch ends after WATCH_RECORDS losses, so an optimizer that never steps (SAC's
+# alpha optimizer without --autotune) does not keep it going.
+WATCH_RECORDS = 100
+watched_steps = weakref.WeakKeyDictionary()
+checked_leaves = set()
+records_left = 0
+handles = {}  # each watched optimizer's hook, by the optimizer's id
+
+
+def record_checked(loss: torch.Tensor):
+    """While optimizers are watched: once its backward has given each of the loss's values a gradient of 1 (optimize's
+    sum), the tensors `loss` trains (its graph's leaves), which an optimizer's step may then update."""
+    global records_left
+    if not watched_steps or loss.grad_fn is None:
+        return
+    if records_left <= 0:
+        watched_steps.clear()  # the watch is over; each hook removes itself at its next call
+        return
+    records_left -= 1
+    leaves, seen, nodes = set(), set(), [loss.grad_fn]
+    while nodes:
+        node = nodes.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        if getattr(node, "variable", None) is not None:  # AccumulateGrad: a leaf's gradient
+            leaves.add(id(node.variable))
+        nodes.extend(next_node for next_node, _ in node.next_functions)
+
+    def whole(grad):
+        if bool((grad == 1).all()):
+            checked_leaves.update(leaves)
+
+    loss.register_hook(whole)
+
+
+def watch_steps(optimizers: dict, num_seeds: int):
+    """With several seeds, each optimizer's first WATCHED_CALLS steps stop if a gradient they apply comes from a loss
+    optimize did not take: a backward written by hand (qf_loss.mean().backward(), then q_optimizer.step()) divides each
+    seed's gradient by the number of seeds, and no check sees a term that mixes the seeds. An earlier run's watch
+    ends."""
+    global records_left
+    for handle in handles.values():  # an earlier run's watch ends
+        handle.remove()
+    handles.clear()
+    watched_steps.clear()
+    checked_leaves.clear()  # ids of an earlier run's tensors, which new ones may reuse
+    apart_calls.clear()  # this run's losses are looked at on their first steps (check_apart), as its first run's were
+    records_left = WATCH_RECORDS if num_seeds > 1 else 0
+    named = {}  # each optimizer once, by its first name
+    for name, optimizer in optimizers.items():
+        named.setdefault(id(optimizer), (name, optimizer))
+    for name, optimizer in named.values() if num_seeds > 1 else ():
+
+        def before_step(optimizer, args, kwargs, name=name):
+            if optimizer not in watched_steps:  # its watch is over
+                handles.pop(id(optimizer)).remove()
+                return
+            params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+            if any(p.is_cuda for p in params) and torch.cuda.is_current_stream_capturing():
+                return  # a recorded update: its eager calls were watched
+            watched_steps[optimizer] += 1
+            if watched_steps[optimizer] >= WATCHED_CALLS:
+                del watched_steps[optimizer]
+            unchecked = [p for p in params if id(p) not in checked_leaves]
+            checked_leaves.difference_update(id(p) for p in params)
+            if unchecked:
+                raise refusal(
+                    RuntimeError,
+                    f"{name}.step() with {num_seeds} seeds: a gradient it applies (a parameter "
+                    f"{list(unchecked[0].shape)}) comes from a loss optimize did not take: a backward written by hand "
+                    f"(qf_loss.mean().backward()) divides each seed's gradient by {num_seeds}, and no check sees a term "
+                    f'that mixes the seeds; step through optimize(qf_loss, "qf_loss", {name}), which takes the loss one '
+                    "per seed",
+                )
+
+        watched_steps[optimizer] = 0
+        handles[id(optimizer)] = optimizer.register_step_pre_hook(before_step)
+
+
 def check_one_per_seed(loss: torch.Tensor, name: str):
     """A loss of one number with a gradient in weights stacked for several seeds: the seeds' losses were reduced
     before optimize (loss.mean(): each seed's gradient divided by the number of seeds, which SGD and clipping by

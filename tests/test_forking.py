@@ -1419,6 +1419,61 @@ def test_the_seeds_apart_check_passes_apart_seeds_and_looks_at_each_losss_first_
     seeds_module.check_apart(per_seed(lambda x, net: (net(x) - net(x).detach()).pow(2).mean().sqrt())(x, net), "sqrt")
 
 
+def test_a_hand_written_backward_and_step_stop_with_several_seeds(tmp_path):
+    """CleanRL's own lines for the critics' step in place of optimize: the seeds' losses reduced by a mean, each seed's
+    gradient divided by the number of seeds, and no check of the loss. With several seeds the optimizer's step stops,
+    naming the fix; one seed's run is CleanRL's and runs."""
+    by_hand = "            q_optimizer.zero_grad()\n            qf_loss.mean().backward()\n            q_optimizer.step()\n"
+
+    def edit(source):
+        assert source.count('            optimize(qf_loss, "qf_loss", q_optimizer)\n') == 1
+        return source.replace('            optimize(qf_loss, "qf_loss", q_optimizer)\n', by_hand)
+
+    assert_one_seed_runs_and_two_stop(
+        tmp_path,
+        edit,
+        "error: q_optimizer.step() with 2 seeds: a gradient it applies (a parameter [2, 256, 4]) comes from a loss "
+        "optimize did not take",
+    )
+
+
+def test_the_step_watch_passes_optimizes_steps_and_watches_each_optimizers_first_steps():
+    net = built([4, 5])
+    x = torch.randn(2, 8, 3)
+    optimizer = torch.optim.Adam(net.parameters())
+    seeds_module.watch_steps({"optimizer": optimizer, "the same one": optimizer}, 2)  # watched once
+
+    def step(backward):
+        loss = per_seed(loss_fn)(x, net)
+        seeds_module.check_apart(loss, "loss")
+        seeds_module.record_checked(loss)  # what optimize's check_finite does
+        optimizer.zero_grad()
+        backward(loss)
+        optimizer.step()
+
+    for _ in range(seeds_module.WATCHED_CALLS - 2):
+        step(lambda loss: loss.sum().backward())  # optimize's
+    with pytest.raises(RuntimeError, match=r"^optimizer.step\(\) with 2 seeds: a gradient it applies \(a parameter \["):
+        step(lambda loss: loss.mean().backward())  # checked, but each seed's gradient divided by 2
+    with pytest.raises(RuntimeError, match=r"^optimizer.step\(\) with 2 seeds"):  # the watch's last step
+        optimizer.zero_grad()
+        per_seed(loss_fn)(x, net).mean().backward()  # not checked at all
+        optimizer.step()
+    step(lambda loss: loss.mean().backward())  # past its first steps: no longer watched
+    assert optimizer not in seeds_module.watched_steps
+    idle = torch.optim.Adam([torch.zeros(2, requires_grad=True)])  # an optimizer that never steps
+    seeds_module.watch_steps({"optimizer": optimizer, "idle": idle}, 2)
+    for _ in range(seeds_module.WATCHED_CALLS - 1):
+        step(lambda loss: loss.sum().backward())
+    for _ in range(seeds_module.WATCH_RECORDS):
+        seeds_module.record_checked(per_seed(loss_fn)(x, net))
+    assert not seeds_module.watched_steps  # the watch ended with its records, the idle optimizer's with it
+    step(lambda loss: loss.mean().backward())
+    seeds_module.watch_steps({"optimizer": optimizer}, 1)  # one seed: no watch
+    step(lambda loss: loss.mean().backward())
+    assert not seeds_module.handles
+
+
 def test_a_part_whose_state_holds_a_tensor_without_the_seeds_dimension_is_refused_at_the_checkpoint():
     """A fork's part with a 0-d counter or a shared [obs_dim] mean: a checkpoint cuts each tensor into the seeds'
     shares along its first dimension, which these do not have."""
@@ -2022,6 +2077,154 @@ def test_a_fork_that_runs_code_after_end_step_is_refused_at_the_start_of_a_run_w
     assert run_fork(tmp_path, edit, 1).returncode == 0
     before = lambda s: s.replace(STEP_AT, reset + STEP_AT, 1)  # noqa: E731
     assert run_fork(tmp_path, before, 1, "--checkpoint-frequency", "150").returncode == 0  # before it: in the step
+
+
+LOOP_AT = "    for global_step in range(run.start_step, args.total_timesteps):\n"
+
+
+def test_a_number_main_carries_from_step_to_step_is_refused_at_the_start_of_a_run_with_checkpoints(tmp_path):
+    """An exploration noise decayed in a plain local (noise *= 0.999 a step) is no checkpoint's: a run resumed from
+    one would start the decay again from args.exploration_noise, silently. Refused at run.start, naming the line; a
+    run without checkpoints has nothing to resume; the decay kept in the flag (restored on --resume), or in a tensor
+    given to run.start and changed in place, is fine."""
+    acting = "actor, args.exploration_noise)"
+
+    def edit(source, noise="noise", given=False):
+        bound = "torch.full((args.num_seeds, 1), args.exploration_noise)" if given else "args.exploration_noise"
+        source = source.replace(LOOP_AT, f"    noise = {bound}\n" + LOOP_AT, 1)
+        source = source.replace(acting, f"actor, {noise})", 1)
+        if given:
+            source = source.replace(
+                "    obs = run.start(", "    noise = torch.full((args.num_seeds, 1), 0.1)\n    obs = run.start(", 1
+            )
+            source = source.replace("buffer=rb)", "buffer=rb, noise=noise)", 1).replace(f"    noise = {bound}\n", "", 1)
+        return source.replace(
+            STEP_AT, f"        {noise} *= 0.999  # an exploration noise annealed step by step\n" + STEP_AT, 1
+        )
+
+    fork = edit(open(os.path.join(REPO, "td3_continuous_action.py")).read())
+    assert "noise *= 0.999" in fork and "actor, noise)" in fork
+    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
+    line = next(i for i, text in enumerate(fork.splitlines(), 1) if "actor, noise)" in text)
+    set_at = fork.splitlines().index("    noise = args.exploration_noise") + 1
+    assert result.returncode == 1
+    assert (
+        result.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            f"error: main's loop carries `noise` from one step to the next (fork_continuous_action.py:{line}), and no "
+            f"checkpoint holds it: --resume would start it again from its value before the loop (fork_continuous_action.py:"
+            f"{set_at}); compute it from global_step"
+        )
+    )
+    assert run_fork(tmp_path, edit, 1).returncode == 0
+    in_flag = functools.partial(edit, noise="args.exploration_noise")
+    assert run_fork(tmp_path, in_flag, 1, "--checkpoint-frequency", "150").returncode == 0
+    in_part = functools.partial(edit, given=True)
+    assert "noise=noise)" in in_part(open(os.path.join(REPO, "td3_continuous_action.py")).read())
+    assert run_fork(tmp_path, in_part, 2, "--checkpoint-frequency", "150").returncode == 0
+
+
+def test_a_sum_carried_through_an_episode_stops_at_a_checkpoint_within_the_episode(tmp_path):
+    """An episode's return summed in a plain local, set to 0.0 as the episode ends: at a checkpoint between episodes
+    (Pendulum's end every 200 steps) it is what it was before the loop, and --resume starts it there; at one within an
+    episode it is not, and the run stops at that checkpoint."""
+    summed = (
+        "        episode_return += float(rewards[0])\n"
+        "        if terminations[0] or truncations[0]:\n"
+        "            episode_return = 0.0\n"
+    )
+
+    def edit(source):
+        source = source.replace(LOOP_AT, "    episode_return = 0.0\n" + LOOP_AT, 1)
+        return source.replace(STEP_AT, summed + STEP_AT, 1)
+
+    assert run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "200").returncode == 0
+    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
+    assert result.returncode == 1
+    line = edit(open(os.path.join(REPO, "td3_continuous_action.py")).read()).splitlines().index(summed.splitlines()[0]) + 1
+    assert (
+        result.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            f"error: main's loop carries `episode_return` from one step to the next (fork_continuous_action.py:{line}), and by "
+            "step 150 it is no longer what it was before the loop: no checkpoint holds it"
+        )
+    )
+
+
+def test_carried_locals_finds_what_a_loop_reads_before_it_sets_it_or_changes_in_place():
+    from rl_utils.run import NOT_A_LITERAL, carried_locals
+
+    def decayed(run, args, log_alpha):
+        noise = args.noise
+        obs = run.start(log_alpha=log_alpha)  # restored: what the run gives, and names computed from it
+        obs = obs if obs is not None else 0
+        alpha = log_alpha.exp()  # after run.start, from what it was given
+        for step in range(run.start_step, 9):
+            action = obs + noise * alpha
+            noise *= 0.99
+            log_alpha *= 0.5  # a part, changed in place
+            obs, alpha = action, log_alpha.exp()
+            run.end_step(step)
+
+    def kept(run):
+        best, hidden, updates = -1e9, None, 0
+        returns, counts = [], {"n": 0}
+        seeds = len(run.seeds)  # computed from the run, not restored by it
+        for step in range(3):
+            ret, hidden = step, (hidden, step)  # a recurrent state
+            best = max(best, ret)
+            if step % 2:
+                updates += seeds
+            squares = [x * x for x in range(step)]  # a comprehension's own name
+            returns.append(ret)
+            counts["n"] += 1
+            run.end_step(len(squares))
+
+    def counted(run):
+        step = run.start_step
+        if (first := run.start()) is None:
+            first = 0
+        while step < 3:
+            last = step + first
+            run.end_step(step)
+            step += 1
+        return last
+
+    def set_first(run):
+        x = 0
+        for step in range(3):
+            x = step * 2
+            x += 1
+            run.end_step(x)
+
+    def counted_from_zero(run):
+        step = 0
+        while step < 3:
+            run.end_step(step)
+            step += 1
+
+    def without_end_step(run):
+        total = 0
+        for step in range(3):
+            total += step
+
+    def found(fn, given=()):
+        first = fn.__code__.co_firstlineno
+        return [(c.name, c.line - first, c.set_at - first, c.literal) for c in carried_locals(fn.__code__, set(given))]
+
+    assert found(decayed, {"log_alpha"}) == [("noise", 6, 1, NOT_A_LITERAL)]
+    assert found(kept) == [
+        ("hidden", 5, 1, None),
+        ("best", 6, 1, -1e9),
+        ("updates", 8, 1, 0),
+        ("returns", 10, 2, []),
+        ("counts", 11, 2, {"n": 0}),
+    ]
+    assert found(counted_from_zero) == [("step", 2, 1, 0)]
+    for fine in (counted, set_first, without_end_step):
+        assert found(fine) == [], fine.__name__
 
 
 def test_after_end_step_finds_the_first_statement_a_loop_runs_after_it():
