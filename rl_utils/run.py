@@ -89,22 +89,21 @@ def calls_end_step(node) -> bool:
     )
 
 
-# methods that change their object in place: a list's, a deque's, a dict's, a set's (a tensor's end with "_": mul_)
-CHANGERS = {"append", "extend", "appendleft", "extendleft", "insert", "pop", "popleft", "popitem", "remove", "clear"}
-CHANGERS |= {"update", "add", "discard", "setdefault", "rotate", "sort", "reverse"}
+# methods that change their object from what it held (an accumulation: a list's, a deque's or a set's new items, a
+# tensor's in-place arithmetic, mul_); not those that overwrite it whole (copy_, fill_, zero_, a dict's update)
+ADDERS = {"append", "extend", "appendleft", "extendleft", "insert", "add"}
+OVERWRITERS = {"copy_", "fill_", "zero_", "set_", "normal_", "uniform_", "requires_grad_", "share_memory_"}
 
 
 def changed_in_place(node) -> "str | None":
-    """The plain name whose object `node` changes in place (returns.append(r), noise.mul_(0.99), counts[0] += 1), or
-    None."""
+    """The plain name whose object `node` changes from what it held (returns.append(r), noise.mul_(0.99),
+    counts[0] += 1), or None."""
     if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and isinstance(node.func.value, ast.Name):
         method = node.func.attr
-        if method in CHANGERS or (method.endswith("_") and not method.startswith("_")):
+        if method in ADDERS or (method.endswith("_") and not method.startswith("_") and method not in OVERWRITERS):
             return node.func.value.id
-    if isinstance(node, (ast.Assign, ast.AugAssign)):
-        for target in node.targets if isinstance(node, ast.Assign) else [node.target]:
-            if isinstance(target, ast.Subscript) and isinstance(target.value, ast.Name):
-                return target.value.id
+    if isinstance(node, ast.AugAssign) and isinstance(node.target, ast.Subscript) and isinstance(node.target.value, ast.Name):
+        return node.target.value.id
     return None
 
 
@@ -150,7 +149,12 @@ def name_events(node, local=frozenset()):
         yield from name_events(child, local)
 
 
-NOT_A_LITERAL = object()
+NOT_A_VALUE = object()
+# what an expression main binds before its loop may call to be computed at run.start (value_before_loop): makers of
+# numbers, arrays, tensors and containers, from these modules
+SAFE_CALLS = {"zeros", "ones", "full", "zeros_like", "ones_like", "full_like", "array", "asarray", "tensor", "as_tensor"}
+SAFE_CALLS |= {"list", "dict", "set", "tuple", "deque", "len", "float", "int", "bool", "min", "max", "abs"}
+SAFE_MODULES = {"numpy", "torch", "collections", "builtins"}
 
 
 @dataclasses.dataclass
@@ -159,8 +163,32 @@ class Carried:
 
     name: str
     line: int  # where the loop first reads it (or changes it in place)
-    set_at: "int | None"  # the line of its last binding before the loop, if any
-    literal: object  # that binding's value if it is a literal (0.0, None, -1e9), else NOT_A_LITERAL
+    set_at: int  # the line of its last binding before the loop
+    value: "ast.expr | None"  # that binding's expression, where it binds the name alone (not x += 1, nor a, b = f())
+
+
+def value_before_loop(node, frame):
+    """The value `node` (an expression main binds a carried local to, after run.start) gives, computed at run.start
+    from main's names where it makes nothing but numbers, strings, arrays, tensors and containers (0.0, -np.inf,
+    np.zeros(len(run.seeds)), deque(maxlen=100)) and can be computed there; else NOT_A_VALUE."""
+    if node is None:
+        return NOT_A_VALUE
+    names = {**frame.f_globals, **frame.f_locals}
+    expression = ast.Expression(body=node)
+    try:
+        for n in ast.walk(node):
+            if isinstance(n, (ast.Lambda, ast.NamedExpr, ast.Await, ast.Yield, ast.YieldFrom, ast.comprehension)):
+                return NOT_A_VALUE
+            if isinstance(n, ast.Call):
+                if not all(isinstance(x, (ast.Name, ast.Attribute, ast.Load)) for x in ast.walk(n.func)):
+                    return NOT_A_VALUE
+                fn = eval(compile(ast.Expression(body=n.func), "<main>", "eval"), names)
+                module = (getattr(fn, "__module__", None) or "").split(".")[0]
+                if module not in SAFE_MODULES or getattr(fn, "__name__", None) not in SAFE_CALLS:
+                    return NOT_A_VALUE
+        return eval(compile(expression, "<main>", "eval"), names)
+    except Exception:  # a name bound after run.start, a value it cannot compute
+        return NOT_A_VALUE
 
 
 def carried_locals(code, given=frozenset()) -> list:
@@ -193,32 +221,20 @@ def carried_locals(code, given=frozenset()) -> list:
         key=lambda n: (n.lineno, n.col_offset),
     )
     started = min((n.lineno for n in ast.walk(body) if isinstance(n, ast.Call) and from_run(n.func)), default=loop.lineno)
-    restored, set_at, literal = set(), {}, {}
+    restored, set_at, value = set(), {}, {}
     for node in before:
         targets = node.targets if isinstance(node, ast.Assign) else [node.target]
         names = [n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)]
         read = {n.id for n in ast.walk(node.value) if isinstance(n, ast.Name)}
         if from_run(node.value) or read & restored or (node.lineno >= started and read & set(given)):
             restored |= set(names)
-        values = {}
-        if isinstance(node, (ast.Assign, ast.AnnAssign, ast.NamedExpr)) and len(targets) == 1:
-            target = targets[0]
-            pairs = [(target, node.value)]
-            if (
-                isinstance(target, ast.Tuple)
-                and isinstance(node.value, ast.Tuple)
-                and len(target.elts) == len(node.value.elts)
-            ):
-                pairs = list(zip(target.elts, node.value.elts))
-            for t, v in pairs:
-                if isinstance(t, ast.Name):
-                    try:
-                        values[t.id] = ast.literal_eval(v)
-                    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
-                        pass
+        pairs = [] if isinstance(node, ast.AugAssign) or len(targets) > 1 else [(targets[0], node.value)]
+        if pairs and isinstance(pairs[0][0], ast.Tuple) and isinstance(node.value, ast.Tuple):
+            pairs = list(zip(pairs[0][0].elts, node.value.elts)) if len(node.value.elts) == len(pairs[0][0].elts) else []
+        expressions = {t.id: v for t, v in pairs if isinstance(t, ast.Name)}
         for name in names:
             set_at[name] = code.co_firstlineno + node.lineno - 1
-            literal[name] = values.get(name, NOT_A_LITERAL)
+            value[name] = expressions.get(name)
     own = {n.id for n in ast.walk(loop.target) if isinstance(n, ast.Name)} if isinstance(loop, ast.For) else set()
     events = list(name_events(ast.Module(body=[*loop.body, *loop.orelse], type_ignores=[])))
     if isinstance(loop, ast.While):
@@ -227,10 +243,10 @@ def carried_locals(code, given=frozenset()) -> list:
     first = {}
     for name, what, line in events:
         first.setdefault(name, (what, line))
-    return [
-        Carried(name, code.co_firstlineno + line - 1, set_at.get(name), literal.get(name, NOT_A_LITERAL))
+    return [  # a name the loop reads that main binds nowhere before it is a global's, or unbound
+        Carried(name, code.co_firstlineno + line - 1, set_at[name], value[name])
         for name, (what, line) in first.items()
-        if what != "set" and name in carrying and name not in restored | own | set(given)
+        if what != "set" and name in carrying and name in set_at and name not in restored | own | set(given)
     ]
 
 
@@ -376,8 +392,9 @@ def fingerprint(value):
 
 
 CARRIED_FIX = (
-    "compute it from global_step (0.1 * 0.99 ** global_step), or keep it in a flag (args.exploration_noise *= 0.999, which "
-    "--resume restores) or in a tensor given to run.start's parts and changed in place (noise.mul_(0.999), a row per seed)"
+    "keep it where a checkpoint holds it: compute it from global_step (a schedule: 0.1 * 0.99 ** global_step), keep it in "
+    "a flag (args.exploration_noise *= 0.999, which --resume restores), or in a tensor given to run.start's parts and "
+    "changed in place (noise.mul_(0.999), a row per seed)"
 )
 
 
@@ -508,16 +525,18 @@ class Run:
         # each checkpoint (check_carried), where a change would be lost on --resume
         self.carried = {}
         for carried in carried_locals(self.caller.f_code, set(self.bound)) if self.args.checkpoint_frequency else []:
-            if carried.name in self.caller.f_locals and (carried.set_at is None or carried.set_at < self.caller.f_lineno):
-                self.carried[carried.name] = (carried, carried_state(self.caller.f_locals[carried.name]))
-            elif carried.literal is not NOT_A_LITERAL:  # bound after run.start: to a literal, 0.0 or None
-                self.carried[carried.name] = (carried, carried_state(carried.literal))
-            else:
+            if carried.set_at < self.caller.f_lineno:  # bound before run.start: as it is now (if bound: a flag's if)
+                if carried.name in self.caller.f_locals:
+                    self.carried[carried.name] = (carried, carried_state(self.caller.f_locals[carried.name]))
+                continue
+            value = value_before_loop(carried.value, self.caller)  # bound after it: 0.0, np.zeros(len(run.seeds))
+            if value is NOT_A_VALUE:
                 fail(
                     f"{self.carried_line(carried)}, and no checkpoint holds it: --resume would start it again from its "
                     f"value before the loop ({os.path.basename(self.caller.f_code.co_filename)}:{carried.set_at}); "
                     + CARRIED_FIX
                 )
+            self.carried[carried.name] = (carried, carried_state(value))
         self.check_stacked_for_the_seeds()
         watch_steps(optimizers, len(self.seeds))  # with several seeds: each step's gradients from a loss optimize took
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it

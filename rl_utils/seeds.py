@@ -408,6 +408,20 @@ def vmap_refusal(fn, n: int, error: RuntimeError) -> RuntimeError:
 apart_calls = {}
 
 
+def gradients(output: torch.Tensor, params: list, name: str) -> tuple:
+    """The gradients of `output` in `params` (None where it has none), its graph kept for the loss's own backward."""
+    try:
+        return torch.autograd.grad(output, params, retain_graph=True, allow_unused=True)
+    except RuntimeError as error:
+        if "backward through the graph a second time" not in str(error):
+            raise
+        raise refusal(
+            RuntimeError,
+            f"{name}: its graph was freed by a backward before the check of the seeds (check_finite after "
+            "loss.backward()): check the loss before its backward, as optimize does",
+        ) from error
+
+
 def check_apart(loss: torch.Tensor, name: str):
     """With several seeds, on a loss's first WATCHED_CALLS steps: the first and the last seed's losses have no gradient
     in another seed's weights. A term a fork computes outside per_seed over the stacked parameters (an L2 penalty over
@@ -424,7 +438,7 @@ def check_apart(loss: torch.Tensor, name: str):
     n = loss.shape[0]
     params = [p for p in list(STACKED.values()) if p.num_seeds == n and p.requires_grad]
     for k in (0, n - 1) if params else ():
-        grads = torch.autograd.grad(loss[k], params, retain_graph=True, allow_unused=True)
+        grads = gradients(loss[k], params, name)
         found = [(p, torch.cat([g[:k], g[k + 1 :]])) for p, g in zip(params, grads) if g is not None]
         crossing = [(others != 0).any() & others.isfinite().all() for _, others in found]  # non-finite: the NaN guard's
         if not found or not torch.stack(crossing).any():  # one read of the device
@@ -440,10 +454,9 @@ def check_apart(loss: torch.Tensor, name: str):
 
 
 # With several seeds, the optimizers run.start was given, each watched on its first WATCHED_CALLS steps (their count
-# here): a step's gradients come from losses optimize took, whole (check_finite saw the loss, and its backward gave
-# each of its values a gradient of 1: loss.sum(), not loss.mean()), whose trained tensors (the leaves of its graph,
-# by id) are in `checked_leaves`. The watch ends after WATCH_RECORDS losses, so an optimizer that never steps (SAC's
-# alpha optimizer without --autotune) does not keep it going.
+# here): a step's gradients come from losses optimize took (check_finite saw them), whose trained tensors (the leaves
+# of their graphs, by id) are in `checked_leaves`. The watch ends after WATCH_RECORDS losses, so an optimizer that
+# never steps (SAC's alpha optimizer without --autotune) does not keep it going.
 WATCH_RECORDS = 100
 watched_steps = weakref.WeakKeyDictionary()
 checked_leaves = set()
@@ -452,8 +465,8 @@ handles = {}  # each watched optimizer's hook, by the optimizer's id
 
 
 def record_checked(loss: torch.Tensor):
-    """While optimizers are watched: once its backward has given each of the loss's values a gradient of 1 (optimize's
-    sum), the tensors `loss` trains (its graph's leaves), which an optimizer's step may then update."""
+    """While optimizers are watched: the tensors `loss` trains (its graph's leaves), which an optimizer's step may then
+    update."""
     global records_left
     if not watched_steps or loss.grad_fn is None:
         return
@@ -470,12 +483,7 @@ def record_checked(loss: torch.Tensor):
         if getattr(node, "variable", None) is not None:  # AccumulateGrad: a leaf's gradient
             leaves.add(id(node.variable))
         nodes.extend(next_node for next_node, _ in node.next_functions)
-
-    def whole(grad):
-        if bool((grad == 1).all()):
-            checked_leaves.update(leaves)
-
-    loss.register_hook(whole)
+    checked_leaves.update(leaves)
 
 
 def watch_steps(optimizers: dict, num_seeds: int):
@@ -512,10 +520,10 @@ def watch_steps(optimizers: dict, num_seeds: int):
                 raise refusal(
                     RuntimeError,
                     f"{name}.step() with {num_seeds} seeds: a gradient it applies (a parameter "
-                    f"{list(unchecked[0].shape)}) comes from a loss optimize did not take: a backward written by hand "
+                    f"{list(unchecked[0].shape)}) comes from a loss optimize did not see: a backward written by hand "
                     f"(qf_loss.mean().backward()) divides each seed's gradient by {num_seeds}, and no check sees a term "
                     f'that mixes the seeds; step through optimize(qf_loss, "qf_loss", {name}), which takes the loss one '
-                    "per seed",
+                    "per seed (a step of your own: check_finite(loss, name) on the loss before its backward)",
                 )
 
         watched_steps[optimizer] = 0
@@ -529,7 +537,7 @@ def check_one_per_seed(loss: torch.Tensor, name: str):
     params = [p for p in list(STACKED.values()) if p.num_seeds > 1 and p.requires_grad]
     if not params:
         return
-    grads = torch.autograd.grad(loss.reshape(()), params, retain_graph=True, allow_unused=True)
+    grads = gradients(loss.reshape(()), params, name)
     reached = [(p, g) for p, g in zip(params, grads) if g is not None]
     if not reached or not torch.stack([(g != 0).any() for _, g in reached]).any():  # one read of the device
         return

@@ -2,6 +2,8 @@
 right numbers, or stops where it happens with one line that names the misuse and the fix (docs/forking.md). With
 one seed and with several."""
 
+import ast
+import collections
 import copy
 import dataclasses
 import enum
@@ -1433,7 +1435,7 @@ def test_a_hand_written_backward_and_step_stop_with_several_seeds(tmp_path):
         tmp_path,
         edit,
         "error: q_optimizer.step() with 2 seeds: a gradient it applies (a parameter [2, 256, 4]) comes from a loss "
-        "optimize did not take",
+        "optimize did not see",
     )
 
 
@@ -1451,13 +1453,11 @@ def test_the_step_watch_passes_optimizes_steps_and_watches_each_optimizers_first
         backward(loss)
         optimizer.step()
 
-    for _ in range(seeds_module.WATCHED_CALLS - 2):
+    for _ in range(seeds_module.WATCHED_CALLS - 1):
         step(lambda loss: loss.sum().backward())  # optimize's
     with pytest.raises(RuntimeError, match=r"^optimizer.step\(\) with 2 seeds: a gradient it applies \(a parameter \["):
-        step(lambda loss: loss.mean().backward())  # checked, but each seed's gradient divided by 2
-    with pytest.raises(RuntimeError, match=r"^optimizer.step\(\) with 2 seeds"):  # the watch's last step
         optimizer.zero_grad()
-        per_seed(loss_fn)(x, net).mean().backward()  # not checked at all
+        per_seed(loss_fn)(x, net).mean().backward()  # by hand, unchecked: the watch's last step stops it
         optimizer.step()
     step(lambda loss: loss.mean().backward())  # past its first steps: no longer watched
     assert optimizer not in seeds_module.watched_steps
@@ -1469,6 +1469,10 @@ def test_the_step_watch_passes_optimizes_steps_and_watches_each_optimizers_first
         seeds_module.record_checked(per_seed(loss_fn)(x, net))
     assert not seeds_module.watched_steps  # the watch ended with its records, the idle optimizer's with it
     step(lambda loss: loss.mean().backward())
+    loss = per_seed(loss_fn)(x, net)
+    loss.sum().backward()
+    with pytest.raises(RuntimeError, match=r"^late: its graph was freed by a backward before the check of the seeds"):
+        seeds_module.check_apart(loss, "late")  # check_finite after the backward
     seeds_module.watch_steps({"optimizer": optimizer}, 1)  # one seed: no watch
     step(lambda loss: loss.mean().backward())
     assert not seeds_module.handles
@@ -2082,31 +2086,42 @@ def test_a_fork_that_runs_code_after_end_step_is_refused_at_the_start_of_a_run_w
 LOOP_AT = "    for global_step in range(run.start_step, args.total_timesteps):\n"
 
 
-def test_a_number_main_carries_from_step_to_step_is_refused_at_the_start_of_a_run_with_checkpoints(tmp_path):
+def test_a_number_main_carries_from_step_to_step_stops_a_run_with_checkpoints(tmp_path):
     """An exploration noise decayed in a plain local (noise *= 0.999 a step) is no checkpoint's: a run resumed from
-    one would start the decay again from args.exploration_noise, silently. Refused at run.start, naming the line; a
-    run without checkpoints has nothing to resume; the decay kept in the flag (restored on --resume), or in a tensor
-    given to run.start and changed in place, is fine."""
+    one would start the decay again, silently. Bound before the loop to what run.start can compute (the flag's value),
+    the run stops at its first checkpoint, where the noise has moved; bound to a draw, at run.start. A run without
+    checkpoints has nothing to resume; the decay kept in the flag (restored on --resume), or in a tensor given to
+    run.start and changed in place, is fine."""
     acting = "actor, args.exploration_noise)"
 
-    def edit(source, noise="noise", given=False):
-        bound = "torch.full((args.num_seeds, 1), args.exploration_noise)" if given else "args.exploration_noise"
-        source = source.replace(LOOP_AT, f"    noise = {bound}\n" + LOOP_AT, 1)
-        source = source.replace(acting, f"actor, {noise})", 1)
+    def edit(source, noise="noise", given=False, initial="args.exploration_noise"):
+        source = source.replace(LOOP_AT, f"    noise = {initial}\n" + LOOP_AT, 1).replace(acting, f"actor, {noise})", 1)
         if given:
             source = source.replace(
                 "    obs = run.start(", "    noise = torch.full((args.num_seeds, 1), 0.1)\n    obs = run.start(", 1
             )
-            source = source.replace("buffer=rb)", "buffer=rb, noise=noise)", 1).replace(f"    noise = {bound}\n", "", 1)
+            source = source.replace("buffer=rb)", "buffer=rb, noise=noise)", 1).replace(f"    noise = {initial}\n", "", 1)
         return source.replace(
             STEP_AT, f"        {noise} *= 0.999  # an exploration noise annealed step by step\n" + STEP_AT, 1
         )
 
     fork = edit(open(os.path.join(REPO, "td3_continuous_action.py")).read())
     assert "noise *= 0.999" in fork and "actor, noise)" in fork
-    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
     line = next(i for i, text in enumerate(fork.splitlines(), 1) if "actor, noise)" in text)
+    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
+    assert result.returncode == 1
+    assert (
+        result.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            f"error: main's loop carries `noise` from one step to the next (fork_continuous_action.py:{line}), and by step "
+            "150 it is no longer what it was before the loop: no checkpoint holds it, so --resume would start it again from "
+            "that value; keep it where a checkpoint holds it"
+        )
+    )
+    drawn = functools.partial(edit, initial="np.random.uniform(0.05, 0.15)")
     set_at = fork.splitlines().index("    noise = args.exploration_noise") + 1
+    result = run_fork(tmp_path, drawn, 1, "--checkpoint-frequency", "150")
     assert result.returncode == 1
     assert (
         result.stderr.strip()
@@ -2114,7 +2129,7 @@ def test_a_number_main_carries_from_step_to_step_is_refused_at_the_start_of_a_ru
         .startswith(
             f"error: main's loop carries `noise` from one step to the next (fork_continuous_action.py:{line}), and no "
             f"checkpoint holds it: --resume would start it again from its value before the loop (fork_continuous_action.py:"
-            f"{set_at}); compute it from global_step"
+            f"{set_at}); keep it where a checkpoint holds it"
         )
     )
     assert run_fork(tmp_path, edit, 1).returncode == 0
@@ -2154,7 +2169,9 @@ def test_a_sum_carried_through_an_episode_stops_at_a_checkpoint_within_the_episo
 
 
 def test_carried_locals_finds_what_a_loop_reads_before_it_sets_it_or_changes_in_place():
-    from rl_utils.run import NOT_A_LITERAL, carried_locals
+    from torch.nn import init
+
+    from rl_utils.run import carried_locals
 
     def decayed(run, args, log_alpha):
         noise = args.noise
@@ -2181,6 +2198,16 @@ def test_carried_locals_finds_what_a_loop_reads_before_it_sets_it_or_changes_in_
             returns.append(ret)
             counts["n"] += 1
             run.end_step(len(squares))
+
+    def overwritten(run):  # written whole before it is read, at each step
+        actions, alpha, logs = np.zeros(2), torch.zeros(1), {}
+        recent = collections.deque(maxlen=3)
+        for step in range(3):
+            actions[:] = step
+            alpha.copy_(torch.tensor(float(step)))
+            logs.update(loss=step)
+            init.zeros_(alpha)  # a module's function, not a local changed in place
+            run.end_step(int(actions[0] + alpha + logs["loss"] + len(recent)))
 
     def counted(run):
         step = run.start_step
@@ -2212,19 +2239,42 @@ def test_carried_locals_finds_what_a_loop_reads_before_it_sets_it_or_changes_in_
 
     def found(fn, given=()):
         first = fn.__code__.co_firstlineno
-        return [(c.name, c.line - first, c.set_at - first, c.literal) for c in carried_locals(fn.__code__, set(given))]
+        carried = carried_locals(fn.__code__, set(given))
+        return [(c.name, c.line - first, c.set_at - first, c.value and ast.unparse(c.value)) for c in carried]
 
-    assert found(decayed, {"log_alpha"}) == [("noise", 6, 1, NOT_A_LITERAL)]
+    assert found(decayed, {"log_alpha"}) == [("noise", 6, 1, "args.noise")]
     assert found(kept) == [
-        ("hidden", 5, 1, None),
-        ("best", 6, 1, -1e9),
-        ("updates", 8, 1, 0),
-        ("returns", 10, 2, []),
-        ("counts", 11, 2, {"n": 0}),
+        ("hidden", 5, 1, "None"),
+        ("best", 6, 1, "-1000000000.0"),
+        ("updates", 8, 1, "0"),
+        ("returns", 10, 2, "[]"),
+        ("counts", 11, 2, "{'n': 0}"),
     ]
-    assert found(counted_from_zero) == [("step", 2, 1, 0)]
-    for fine in (counted, set_first, without_end_step):
+    assert found(counted_from_zero) == [("step", 2, 1, "0")]
+    for fine in (overwritten, counted, set_first, without_end_step):
         assert found(fine) == [], fine.__name__
+
+
+def test_a_value_main_binds_after_run_start_is_computed_there_where_it_makes_only_numbers_and_containers():
+    """What a carried local is before the loop, bound after run.start: computed at run.start from main's names where
+    the expression calls only makers of numbers, arrays, tensors and containers; else it cannot be known there."""
+    from rl_utils.run import NOT_A_VALUE, value_before_loop
+
+    def frame_of(**names):
+        return types.SimpleNamespace(f_globals={"np": np, "torch": torch, "deque": collections.deque}, f_locals=names)
+
+    def value(source, **names):
+        return value_before_loop(ast.parse(source, mode="eval").body, frame_of(**names))
+
+    seeds = types.SimpleNamespace(seeds=[1, 2])
+    assert np.array_equal(value("np.zeros(len(run.seeds))", run=seeds), np.zeros(2))
+    assert value("-np.inf") == -np.inf and value("args.noise * 2", args=types.SimpleNamespace(noise=0.1)) == 0.2
+    assert value("deque(maxlen=3)") == collections.deque(maxlen=3)
+    assert torch.equal(value("torch.full((2, 1), 0.1)"), torch.full((2, 1), 0.1))
+    draws = np.random.get_state()[1].copy()
+    for unknown in ("np.random.uniform(0.05, 0.15)", "envs.reset()", "np.zeros(len(obs))", "[x for x in range(2)]"):
+        assert value(unknown, envs=None, obs=None) is NOT_A_VALUE, unknown
+    assert np.array_equal(np.random.get_state()[1], draws)  # nothing drawn
 
 
 def test_after_end_step_finds_the_first_statement_a_loop_runs_after_it():
