@@ -83,10 +83,17 @@ def loops(node):
         yield from loops(child)
 
 
+def end_step_calls(node) -> list:
+    """The calls of something's end_step (run.end_step(step)) within `node`."""
+    return [
+        n
+        for n in ast.walk(node)
+        if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step"
+    ]
+
+
 def calls_end_step(node) -> bool:
-    return any(
-        isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step" for n in ast.walk(node)
-    )
+    return bool(end_step_calls(node))
 
 
 # methods that change their object from what it held (an accumulation: a list's, a deque's or a set's new items, a
@@ -174,7 +181,10 @@ def value_before_loop(node, frame):
     if node is None:
         return NOT_A_VALUE
     names = {**frame.f_globals, **frame.f_locals}
-    expression = ast.Expression(body=node)
+
+    def evaluate(expression):
+        return eval(compile(ast.Expression(body=expression), "<main>", "eval"), names)
+
     try:
         for n in ast.walk(node):
             if isinstance(n, (ast.Lambda, ast.NamedExpr, ast.Await, ast.Yield, ast.YieldFrom, ast.comprehension)):
@@ -182,11 +192,11 @@ def value_before_loop(node, frame):
             if isinstance(n, ast.Call):
                 if not all(isinstance(x, (ast.Name, ast.Attribute, ast.Load)) for x in ast.walk(n.func)):
                     return NOT_A_VALUE
-                fn = eval(compile(ast.Expression(body=n.func), "<main>", "eval"), names)
+                fn = evaluate(n.func)
                 module = (getattr(fn, "__module__", None) or "").split(".")[0]
                 if module not in SAFE_MODULES or getattr(fn, "__name__", None) not in SAFE_CALLS:
                     return NOT_A_VALUE
-        return eval(compile(expression, "<main>", "eval"), names)
+        return evaluate(node)
     except Exception:  # a name bound after run.start, a value it cannot compute
         return NOT_A_VALUE
 
@@ -202,12 +212,7 @@ def carried_locals(code, given=frozenset()) -> list:
     loop = next((loop for loop in loops(body) if calls_end_step(loop)), None) if body is not None else None
     if loop is None:
         return []
-    runs = {
-        n.func.value.id
-        for n in ast.walk(loop)
-        if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "end_step"
-        if isinstance(n.func.value, ast.Name)
-    }
+    runs = {call.func.value.id for call in end_step_calls(loop) if isinstance(call.func.value, ast.Name)}
 
     def from_run(node) -> bool:  # run.start(...) or run.start_step
         return any(
@@ -516,7 +521,7 @@ class Run:
         line = after_end_step(self.caller.f_code) if self.args.checkpoint_frequency else None
         if line:
             fail(
-                f"main's loop runs code after run.end_step ({os.path.basename(self.caller.f_code.co_filename)}:{line}), which "
+                f"main's loop runs code after run.end_step ({self.main_line(line)}), which "
                 "writes the checkpoints: a run resumed from one would never run that code for the step it was written at "
                 "(a reset, a decay, a target copy, an evaluation); end the loop's body with run.end_step(global_step), as "
                 "the scripts do"
@@ -533,8 +538,7 @@ class Run:
             if value is NOT_A_VALUE:
                 fail(
                     f"{self.carried_line(carried)}, and no checkpoint holds it: --resume would start it again from its "
-                    f"value before the loop ({os.path.basename(self.caller.f_code.co_filename)}:{carried.set_at}); "
-                    + CARRIED_FIX
+                    f"value before the loop ({self.main_line(carried.set_at)}); " + CARRIED_FIX
                 )
             self.carried[carried.name] = (carried, carried_state(value))
         self.check_stacked_for_the_seeds()
@@ -780,9 +784,12 @@ class Run:
                 "keep that state in a tensor given to run.start"
             )
 
+    def main_line(self, line: int) -> str:
+        """file:line of a line of main's script."""
+        return f"{os.path.basename(self.caller.f_code.co_filename)}:{line}"
+
     def carried_line(self, carried) -> str:
-        file = os.path.basename(self.caller.f_code.co_filename)
-        return f"main's loop carries `{carried.name}` from one step to the next ({file}:{carried.line})"
+        return f"main's loop carries `{carried.name}` from one step to the next ({self.main_line(carried.line)})"
 
     def check_carried(self, step: int):
         """Each plain local main's loop carries from step to step (run.start's carried_locals) is at a checkpoint what

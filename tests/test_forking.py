@@ -304,10 +304,13 @@ def test_a_network_or_optimizer_bound_anew_stops_the_run_at_that_step(rebound, n
     assert f"{rebound}.load_state_dict(fresh.state_dict()), fresh built as main builds it, by stack_seeds" in line
 
 
+def td3_source() -> str:
+    return open(os.path.join(REPO, "td3_continuous_action.py")).read()
+
+
 def run_fork(tmp_path, edit, num_seeds=1, *extra):
     """A fork of TD3 (td3_continuous_action.py with `edit(source)` applied) run for 400 steps on Pendulum-v1."""
-    source = open(os.path.join(REPO, "td3_continuous_action.py")).read()
-    (tmp_path / "fork_continuous_action.py").write_text(edit(source))
+    (tmp_path / "fork_continuous_action.py").write_text(edit(td3_source()))
     flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "400", "--learning-starts", "200", "--batch-size", "32"]
     flags += [
         "--eval-frequency",
@@ -326,14 +329,19 @@ def run_fork(tmp_path, edit, num_seeds=1, *extra):
     return subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
 
 
+def assert_fork_stops(tmp_path, edit, error_start: str, num_seeds=1, *extra):
+    """The fork (run_fork's) stops, the last line of its stderr starting `error_start`."""
+    result = run_fork(tmp_path, edit, num_seeds, *extra)
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines()[-1].startswith(error_start)
+
+
 def assert_one_seed_runs_and_two_stop(tmp_path, edit, error_start: str):
     """The fork runs to its end with one seed and stops with two, its last line of stderr starting `error_start`."""
     one, two = tmp_path / "one", tmp_path / "two"
     one.mkdir(), two.mkdir()
     assert run_fork(one, edit, 1).returncode == 0
-    result = run_fork(two, edit, 2)
-    assert result.returncode == 1
-    assert result.stderr.strip().splitlines()[-1].startswith(error_start)
+    assert_fork_stops(two, edit, error_start, 2)
 
 
 @needs_cuda
@@ -366,11 +374,7 @@ def test_random_actions_drawn_as_cleanrl_draws_them_are_refused_in_one_line(tmp_
     """CleanRL's habit, `envs.action_space.sample()`, gives one env's action [action_dim] (SeedEnvs.action_space is
     one env's): stepped, a DeepMind Control env would broadcast a number to every actuator. Refused at the step."""
     edit = lambda source: source.replace("envs.sample_actions()", "envs.action_space.sample()")  # noqa: E731
-    step_line = next(
-        k
-        for k, line in enumerate(edit(open(os.path.join(REPO, "td3_continuous_action.py")).read()).splitlines(), 1)
-        if "envs.step(actions)" in line
-    )
+    step_line = next(k for k, line in enumerate(edit(td3_source()).splitlines(), 1) if "envs.step(actions)" in line)
     result = run_fork(tmp_path, edit)
     assert result.returncode == 1
     assert result.stderr.strip().splitlines()[-1] == (
@@ -1072,11 +1076,7 @@ def test_a_refusal_in_a_forks_per_seed_function_is_one_line_on_the_command_line(
     def edit(source):
         return source.replace(anchor, anchor + "    float(qf_a_values.max().item())\n", 1)
 
-    line = (
-        edit(open(os.path.join(REPO, "td3_continuous_action.py")).read())
-        .splitlines()
-        .index("    float(qf_a_values.max().item())")
-    )
+    line = edit(td3_source()).splitlines().index("    float(qf_a_values.max().item())")
     result = run_fork(tmp_path, edit, 2)
     assert result.returncode == 1 and "Traceback" not in result.stderr
     last = result.stderr.strip().splitlines()[-1]
@@ -2068,16 +2068,9 @@ def test_a_fork_that_runs_code_after_end_step_is_refused_at_the_start_of_a_run_w
         "                layer.reset_parameters()\n"
     )
     edit = lambda s: s.replace(STEP_AT, STEP_AT + reset, 1)  # noqa: E731
-    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
-    line = edit(open(os.path.join(REPO, "td3_continuous_action.py")).read()).splitlines().index(reset.splitlines()[0]) + 1
-    assert result.returncode == 1
-    assert (
-        result.stderr.strip()
-        .splitlines()[-1]
-        .startswith(
-            f"error: main's loop runs code after run.end_step (fork_continuous_action.py:{line}), which writes the checkpoints"
-        )
-    )
+    line = edit(td3_source()).splitlines().index(reset.splitlines()[0]) + 1
+    error = f"error: main's loop runs code after run.end_step (fork_continuous_action.py:{line}), which writes the checkpoints"
+    assert_fork_stops(tmp_path, edit, error, 1, "--checkpoint-frequency", "150")
     assert run_fork(tmp_path, edit, 1).returncode == 0
     before = lambda s: s.replace(STEP_AT, reset + STEP_AT, 1)  # noqa: E731
     assert run_fork(tmp_path, before, 1, "--checkpoint-frequency", "150").returncode == 0  # before it: in the step
@@ -2105,38 +2098,27 @@ def test_a_number_main_carries_from_step_to_step_stops_a_run_with_checkpoints(tm
             STEP_AT, f"        {noise} *= 0.999  # an exploration noise annealed step by step\n" + STEP_AT, 1
         )
 
-    fork = edit(open(os.path.join(REPO, "td3_continuous_action.py")).read())
+    fork = edit(td3_source())
     assert "noise *= 0.999" in fork and "actor, noise)" in fork
     line = next(i for i, text in enumerate(fork.splitlines(), 1) if "actor, noise)" in text)
-    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
-    assert result.returncode == 1
-    assert (
-        result.stderr.strip()
-        .splitlines()[-1]
-        .startswith(
-            f"error: main's loop carries `noise` from one step to the next (fork_continuous_action.py:{line}), and by step "
-            "150 it is no longer what it was before the loop: no checkpoint holds it, so --resume would start it again from "
-            "that value; keep it where a checkpoint holds it"
-        )
+    carries = f"error: main's loop carries `noise` from one step to the next (fork_continuous_action.py:{line}), and "
+    moved = (
+        "by step 150 it is no longer what it was before the loop: no checkpoint holds it, so --resume would start it "
+        "again from that value; keep it where a checkpoint holds it"
     )
+    assert_fork_stops(tmp_path, edit, carries + moved, 1, "--checkpoint-frequency", "150")
     drawn = functools.partial(edit, initial="np.random.uniform(0.05, 0.15)")
     set_at = fork.splitlines().index("    noise = args.exploration_noise") + 1
-    result = run_fork(tmp_path, drawn, 1, "--checkpoint-frequency", "150")
-    assert result.returncode == 1
-    assert (
-        result.stderr.strip()
-        .splitlines()[-1]
-        .startswith(
-            f"error: main's loop carries `noise` from one step to the next (fork_continuous_action.py:{line}), and no "
-            f"checkpoint holds it: --resume would start it again from its value before the loop (fork_continuous_action.py:"
-            f"{set_at}); keep it where a checkpoint holds it"
-        )
+    unknown = (
+        "no checkpoint holds it: --resume would start it again from its value before the loop (fork_continuous_action.py:"
+        f"{set_at}); keep it where a checkpoint holds it"
     )
+    assert_fork_stops(tmp_path, drawn, carries + unknown, 1, "--checkpoint-frequency", "150")
     assert run_fork(tmp_path, edit, 1).returncode == 0
     in_flag = functools.partial(edit, noise="args.exploration_noise")
     assert run_fork(tmp_path, in_flag, 1, "--checkpoint-frequency", "150").returncode == 0
     in_part = functools.partial(edit, given=True)
-    assert "noise=noise)" in in_part(open(os.path.join(REPO, "td3_continuous_action.py")).read())
+    assert "noise=noise)" in in_part(td3_source())
     assert run_fork(tmp_path, in_part, 2, "--checkpoint-frequency", "150").returncode == 0
 
 
@@ -2155,17 +2137,12 @@ def test_a_sum_carried_through_an_episode_stops_at_a_checkpoint_within_the_episo
         return source.replace(STEP_AT, summed + STEP_AT, 1)
 
     assert run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "200").returncode == 0
-    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
-    assert result.returncode == 1
-    line = edit(open(os.path.join(REPO, "td3_continuous_action.py")).read()).splitlines().index(summed.splitlines()[0]) + 1
-    assert (
-        result.stderr.strip()
-        .splitlines()[-1]
-        .startswith(
-            f"error: main's loop carries `episode_return` from one step to the next (fork_continuous_action.py:{line}), and by "
-            "step 150 it is no longer what it was before the loop: no checkpoint holds it"
-        )
+    line = edit(td3_source()).splitlines().index(summed.splitlines()[0]) + 1
+    error = (
+        f"error: main's loop carries `episode_return` from one step to the next (fork_continuous_action.py:{line}), and by "
+        "step 150 it is no longer what it was before the loop: no checkpoint holds it"
     )
+    assert_fork_stops(tmp_path, edit, error, 1, "--checkpoint-frequency", "150")
 
 
 def test_carried_locals_finds_what_a_loop_reads_before_it_sets_it_or_changes_in_place():
