@@ -12,6 +12,7 @@ import pytest
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")  # as tools/same_numbers.py runs its scripts: one fork server serves both
 # Tests run scripts side by side (and pytest-xdist one test per core). With more threads than cores, OpenMP's default
 # spin at every barrier, waiting for a thread that is not running, made two 2-thread TD3 runs side by side on 2 cores
 # take 18 to 118 s where one took 10; waiting passively, 10 s (results/test_suite/side_by_side.sh). The numbers are the

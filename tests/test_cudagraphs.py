@@ -4,7 +4,6 @@ The tests that need a GPU skip on a machine without CUDA (CI has none); run them
 `python -m pytest tests/test_cudagraphs.py tests/test_reliability.py -k cudagraphs`."""
 
 import os
-import subprocess
 import sys
 
 import numpy as np
@@ -12,6 +11,7 @@ import pytest
 import torch
 
 from conftest import OFF_POLICY, REPO, cli_flags, critic_lr_flag, load, needs_cuda, parse, scalars, script_command, small_args
+import forkserver
 
 LOSSES = ["losses/qf_loss", "losses/qf_values"]
 # (script, seeds in the process)
@@ -101,7 +101,7 @@ def test_non_finite_loss_under_graphs_stops_at_a_logging_step(script, tmp_path):
         *cli_flags(script, total_timesteps=800, learning_starts=100, batch_size=32, eval_frequency=800, eval_episodes=1),
     ]
     command = script_command(script, *flags, critic_lr_flag(script), "1e30", "--cudagraphs", "--run-name", "nan")
-    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert result.returncode == 1
     line = result.stderr.strip().splitlines()[-1]
     assert line.startswith("error: ") and "became non-finite by step" in line and "--cudagraphs checks every 100 steps" in line
@@ -114,7 +114,7 @@ def test_phase_times_charges_the_recorded_update_to_its_replay(script, tmp_path)
     timed), and the synchronising timers leave the recording intact (the run ends and reports)."""
     flags = cli_flags(script, total_timesteps=600, learning_starts=100, batch_size=32, eval_frequency=600, eval_episodes=1)
     tool = [sys.executable, os.path.join(REPO, "tools", "speed", "phase_times.py"), script, "--env-id", "Pendulum-v1", *flags]
-    result = subprocess.run([*tool, "--cudagraphs", "--warmup-updates", "20"], cwd=tmp_path, capture_output=True, text=True)
+    result = forkserver.run([*tool, "--cudagraphs", "--warmup-updates", "20"], cwd=tmp_path, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     summary = next(line for line in result.stdout.splitlines() if "training steps timed on" in line)
     assert "480 training steps timed on" in summary and "timed on cpu" not in summary

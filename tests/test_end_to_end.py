@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from conftest import ON_POLICY, REPO, SCRIPTS, cli_flags, declared, load, scalars, small_args, source
+import forkserver
 from rl_utils import make_env
 
 pytestmark = pytest.mark.slow  # every test here trains or sweeps
@@ -86,7 +87,7 @@ def test_save_model_writes_loadable_weights(script, tmp_path, monkeypatch):
 
 
 def run_script(script, *flags, env=None):
-    return subprocess.run(
+    return forkserver.run(
         [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags],
         capture_output=True,
         text=True,
@@ -113,7 +114,7 @@ def rendering_works():
     probe = f"import gymnasium as gym; e = gym.make('{VIDEO_ENV}', render_mode='rgb_array'); e.reset(seed=0); assert e.render().mean() > 0"
     try:
         return (
-            subprocess.run(
+            forkserver.run(
                 [sys.executable, "-c", probe], env={**os.environ, "MUJOCO_GL": "egl"}, capture_output=True, timeout=120
             ).returncode
             == 0
@@ -131,7 +132,7 @@ def test_capture_video_records_evaluation_episodes(script, tmp_path):
         VIDEO_ENV,
         *cli_flags(script, total_timesteps=300, learning_starts=300, eval_frequency=300, eval_episodes=2),
     ]
-    result = subprocess.run(
+    result = forkserver.run(
         [sys.executable, os.path.join(REPO, f"{script}_continuous_action.py"), *flags, "--capture-video", "--run-name", "run"],
         cwd=tmp_path,
         env={**os.environ, "MUJOCO_GL": "egl"},

@@ -3,13 +3,13 @@ tests/test_many_seeds.py): it reproduces the script's own last evaluation, and b
 
 import os
 import re
-import subprocess
 import sys
 
 import pytest
 import torch
 
 from conftest import REPO, SCRIPTS, load, small_args
+import forkserver
 from rl_utils.envs import PROBE_SIZE
 from test_end_to_end import VIDEO_ENV, rendering_works
 
@@ -53,7 +53,7 @@ def test_names_are_inferred_from_the_run_folder():
 
 
 def run_cli(*flags, cwd, env=None):
-    return subprocess.run(
+    return forkserver.run(
         [sys.executable, os.path.join(REPO, "tools", "evaluate.py"), *flags], capture_output=True, text=True, cwd=cwd, env=env
     )
 

@@ -12,7 +12,6 @@ import io
 import os
 import random
 import re
-import subprocess
 import sys
 import types
 import typing
@@ -25,6 +24,7 @@ import torch.nn as nn
 import sac_continuous_action as sac
 import td3_continuous_action as td3
 from conftest import OFF_POLICY, REPO, load, needs_cuda, parse, script_command, small_args
+import forkserver
 from rl_utils import CudaGraph, SeedEnvs, parse_args, per_seed, stack_seeds
 from rl_utils.buffers import ReplayBuffer
 import rl_utils.checkpoints as ckpt
@@ -326,7 +326,7 @@ def run_fork(tmp_path, edit, num_seeds=1, *extra):
     command = script_command("td3", *flags)
     command[1] = str(tmp_path / "fork_continuous_action.py")
     env = {**os.environ, "PYTHONPATH": REPO}
-    return subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    return forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
 
 
 def assert_fork_stops(tmp_path, edit, error_start: str, num_seeds=1, *extra):
@@ -1296,7 +1296,7 @@ def test_a_ppo_fork_that_wraps_its_evaluation_env_in_a_reward_scale_stops_and_on
         (tmp_path / name).mkdir()
         (tmp_path / name / "fork_continuous_action.py").write_text(fork)
         command = [sys.executable, "fork_continuous_action.py", *flags, "--eval-episodes", "1"]
-        results[name] = subprocess.run(
+        results[name] = forkserver.run(
             command, cwd=tmp_path / name, capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": REPO}
         )
     assert results["train"].returncode == 0, results["train"].stderr
@@ -1328,7 +1328,7 @@ def test_a_ppo_fork_whose_normalizer_gains_a_field_its_state_dict_leaves_out_sto
             "--checkpoint-frequency",
             "150",
         ]
-        results[name] = subprocess.run(
+        results[name] = forkserver.run(
             command, cwd=tmp_path / name, capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": REPO}
         )
     assert results["ppo"].returncode == 0, results["ppo"].stderr

@@ -20,6 +20,7 @@ import torch
 import torch.nn as nn
 
 from conftest import OFF_POLICY, QUICK, REPO, declared, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
+import forkserver
 from rl_utils import SeedEnvs, evaluate, per_seed, stack_seeds
 from rl_utils.seeds import split_seeds
 from rl_utils import checkpoints as ckpt
@@ -320,7 +321,7 @@ def test_each_seed_is_an_ordinary_run(script, tmp_path):
     tools/evaluate.py evaluates it to its logged return; every seed learns its own weights."""
     module = load(script)
     flags = cli_flags(script, total_timesteps=600, learning_starts=300, batch_size=64, eval_frequency=300, eval_episodes=1)
-    result = subprocess.run(  # Pendulum: short evaluation episodes
+    result = forkserver.run(  # Pendulum: short evaluation episodes
         script_command(
             script,
             "--env-id",
@@ -372,9 +373,9 @@ def test_a_killed_many_seed_process_resumes_identical(script, env_id, tmp_path):
     def start(name, *extra):
         log = open(tmp_path / f"{name}.log", "w")
         command = script_command(script, *flags, "--run-name", name + "{seed}", *extra)
-        return subprocess.Popen(command, cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
+        return forkserver.Popen(command, cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT, fresh=name == "full")
 
-    full, killed = start("full"), start("killed", "--checkpoint-frequency", "550")
+    full, killed = start("full"), start("killed", "--checkpoint-frequency", "550")  # a new interpreter, and a fork
     checkpoints = [tmp_path / "runs" / f"killed{seed}" / "checkpoint.pt" for seed in (1, 2)]
     deadline = time.time() + 240
     while not all(c.exists() for c in checkpoints) and killed.poll() is None and time.time() < deadline:
@@ -385,7 +386,7 @@ def test_a_killed_many_seed_process_resumes_identical(script, env_id, tmp_path):
     assert killed.wait() == -signal.SIGKILL, "the run ended before the kill: the comparison would test nothing"
     killed_at = torch.load(checkpoints[0], weights_only=True)["global_step"]
     assert 500 < killed_at < 1200  # after the optimizers have stepped
-    resumed = subprocess.run(
+    resumed = forkserver.run(
         script_command(script, "--resume", "runs/killed2", "--save-model"),
         cwd=tmp_path,
         capture_output=True,
@@ -411,7 +412,7 @@ def two_seed_run(tmp_path_factory):
     script = MANY_SEEDS[0]
     flags = cli_flags(script, total_timesteps=400, learning_starts=200, batch_size=32, eval_frequency=400, eval_episodes=1)
     command = script_command(script, "--env-id", "Pendulum-v1", *flags, "--num-seeds", "2", "--run-name", "s{seed}")
-    result = subprocess.run([*command, "--checkpoint-frequency", "200"], cwd=cwd, capture_output=True, text=True, timeout=300)
+    result = forkserver.run([*command, "--checkpoint-frequency", "200"], cwd=cwd, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
     return script, cwd
 

@@ -24,6 +24,7 @@ from conftest import (
     scalars,
     script_command,
 )
+import forkserver
 from rl_utils import checkpoints, make_env
 
 
@@ -52,11 +53,14 @@ def short(script, phase="learning"):
     )
 
 
-def start(script, cwd, *flags, log=None):
-    """The script in a process of its own, its output unbuffered into a log (a killed process loses no line)."""
+def start(script, cwd, *flags, log=None, fresh=False):
+    """The script in a process of its own, its output unbuffered into a log (a killed process loses no line); forked
+    from the tests' fork server unless `fresh` (tests/forkserver.py)."""
     log = open(os.path.join(cwd, log or f"{flags[flags.index('--run-name') + 1]}.log"), "w")
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    return subprocess.Popen(script_command(script, *flags), cwd=cwd, stdout=log, stderr=subprocess.STDOUT, env=env)
+    return forkserver.Popen(
+        script_command(script, *flags), cwd=cwd, stdout=log, stderr=subprocess.STDOUT, env=env, fresh=fresh
+    )
 
 
 def identity(path) -> tuple:
@@ -107,7 +111,8 @@ GRAPH_KILL_CASES = [
 def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, env_id, phase, extra, tmp_path):
     total, learning_starts, checkpoint_frequency = phase_of(script, phase)
     flags = ["--env-id", env_id, *short(script, phase), "--save-model", *([extra] if extra else [])]
-    full = start(script, tmp_path, *flags, "--run-name", "full")
+    # the uninterrupted run in a new interpreter, the killed and resumed ones forked: the same numbers from both
+    full = start(script, tmp_path, *flags, "--run-name", "full", fresh=True)
     killed = start(script, tmp_path, *flags, "--run-name", "killed", "--checkpoint-frequency", str(checkpoint_frequency))
     checkpoint = tmp_path / "runs" / "killed" / "checkpoint.pt"
     if phase == "random+trained":
@@ -130,7 +135,7 @@ def test_killed_and_resumed_run_ends_identical_to_an_uninterrupted_one(script, e
         state = kill_after_a_checkpoint(killed, checkpoint, tmp_path / "killed.log")
     killed_at = state["global_step"]
     assert killed_at < total
-    resumed = subprocess.run(
+    resumed = forkserver.run(
         script_command(script, "--resume", "runs/killed", "--save-model"),
         cwd=tmp_path,
         capture_output=True,
@@ -251,7 +256,7 @@ def finished_run(tmp_path_factory):
                     script, total_timesteps=400, learning_starts=200, batch_size=32, eval_frequency=400, eval_episodes=1
                 ),
             ]
-            result = subprocess.run(
+            result = forkserver.run(
                 script_command(script, *flags, "--run-name", "done", "--checkpoint-frequency", "200"),
                 cwd=cwd,
                 capture_output=True,
@@ -366,7 +371,7 @@ def test_non_finite_loss_stops_with_the_step_and_the_last_good_state(script, tmp
         "Pendulum-v1",
         *cli_flags(script, total_timesteps=600, learning_starts=100, batch_size=32, eval_frequency=600, eval_episodes=1),
     ]
-    result = subprocess.run(
+    result = forkserver.run(
         script_command(script, *flags, critic_lr_flag(script), "1e30", "--run-name", "nan"),
         cwd=tmp_path,
         capture_output=True,

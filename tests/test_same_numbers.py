@@ -4,10 +4,12 @@ every logged scalar of a short run of each script, bit for bit, both commits' sc
 
 import os
 import sys
+import types
 
 import pytest
 
 from conftest import REPO
+import forkserver
 
 sys.path.insert(0, os.path.join(REPO, "tools"))
 import same_numbers  # noqa: E402
@@ -25,7 +27,9 @@ def reference_dir(tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("script", list(same_numbers.RUNS))
-def test_a_short_run_logs_what_the_reference_commit_logs(script, reference_dir):
+def test_a_short_run_logs_what_the_reference_commit_logs(script, reference_dir, monkeypatch):
+    # both commits' runs forked from the tests' fork server (tests/forkserver.py): the same interpreter state for both
+    monkeypatch.setattr(same_numbers, "subprocess", types.SimpleNamespace(run=forkserver.run))
     assert same_numbers.compare(script, reference_dir) == []
 
 

@@ -13,12 +13,13 @@ import types
 import pytest
 
 from conftest import REPO
+import forkserver
 
 SPEED = os.path.join(REPO, "tools", "speed")
 
 
 def tool(name, *flags, timeout=600):
-    return subprocess.run([sys.executable, os.path.join(SPEED, name), *flags], capture_output=True, text=True, timeout=timeout)
+    return forkserver.run([sys.executable, os.path.join(SPEED, name), *flags], capture_output=True, text=True, timeout=timeout)
 
 
 def load_tool(name: str):
@@ -108,7 +109,7 @@ def test_throughput_runs_a_script_and_imports_given_relative_to_the_caller(tmp_p
     script.write_text("import sys, marker\nlearning_starts: int = 0\n")
     monkeypatch.chdir(tmp_path)
     env = {**os.environ, "PYTHONPATH": "lib"}
-    result = subprocess.run(
+    result = forkserver.run(
         [
             sys.executable,
             os.path.join(SPEED, "throughput.py"),
