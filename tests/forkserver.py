@@ -140,8 +140,7 @@ class Server:
     def serves(self, command, env) -> bool:
         if len(command) < 2 or command[0] != sys.executable or not str(command[1]).endswith(".py"):
             return False
-        changed = {k for k in set(env) | set(self.env) if env.get(k) != self.env.get(k) and k.startswith(LOADED)}
-        return self.process.poll() is None and changed <= SET_IN_THE_CHILD
+        return self.process.poll() is None and loaded(env) == loaded(self.env)
 
     def receive(self, timeout=None) -> bool:
         """Reads one message into self.exited (or returns its "started" pid); False if none came within timeout."""
@@ -166,14 +165,21 @@ class Server:
                 return started
 
 
+def loaded(env) -> dict:
+    """The variables of `env` that the interpreter or a preloaded library reads as it starts."""
+    return {k: v for k, v in env.items() if k.startswith(LOADED) and k not in SET_IN_THE_CHILD}
+
+
 _server = None
 
 
 def server():
-    """This process's server, started at the first call; None where it cannot run (FORKSERVER=0, or a system without
-    SOCK_SEQPACKET sockets, such as macOS): every command then runs as a new process."""
+    """The server of this process's environment as it is now, started at the first call and again after a test changed
+    a variable of LOADED in it (torch.compile sets TORCHINDUCTOR_CACHE_DIR; the earlier server ends with this process);
+    None where it cannot run (FORKSERVER=0, or a system without SOCK_SEQPACKET sockets, such as macOS): every command
+    then runs as a new process."""
     global _server
-    if _server is None:
+    if _server is None or (_server and loaded(_server.env) != loaded(os.environ)):
         try:
             _server = Server() if os.environ.get("FORKSERVER", "1") != "0" else False
         except OSError:

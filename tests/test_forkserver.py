@@ -80,6 +80,16 @@ def test_a_variable_read_as_a_library_loads_runs_a_new_process(probe, tmp_path):
     assert other.stdout == "False\n"  # not a script: a new process
 
 
+def test_a_variable_of_the_tests_own_environment_changed_starts_a_server_for_it(probe, tmp_path, monkeypatch):
+    """A test that sets such a variable in the test process (torch.compile sets TORCHINDUCTOR_CACHE_DIR) leaves the
+    later runs forked, from a server started with it."""
+    first = forkserver.server()
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
+    result = forkserver.run([sys.executable, str(probe), "0"], cwd=tmp_path, capture_output=True, text=True)
+    assert result.stdout.splitlines()[4] == "preloaded" and forkserver.server() is not first
+    assert forkserver.server().env["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "inductor")
+
+
 def test_a_forked_process_is_killed_waited_for_and_timed_out_as_a_popen(probe, tmp_path):
     log = open(tmp_path / "log", "w")
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
