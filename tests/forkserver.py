@@ -42,7 +42,7 @@ PRELOADED = (
 # environment differs from the server's in one runs as a new process (the others are read after the fork, from the
 # child's os.environ)
 LOADED = ("PYTHON", "OMP_", "KMP_", "GOMP_", "MKL_", "OPENBLAS_", "ATEN_", "TORCH", "PYTORCH_", "CUDA_", "NVIDIA_", "LD_")
-LOADED += ("DNNL_", "ONEDNN_", "MALLOC_", "GLIBC_", "LC_", "LANG")
+LOADED += ("DNNL_", "ONEDNN_", "MALLOC_", "GLIBC_", "LC_", "LANG", "TQDM_", "NPY_", "NUMPY_")
 SET_IN_THE_CHILD = {"PYTHONUNBUFFERED", "PYTHONPATH"}  # of those, the ones a child takes as a new interpreter would
 MESSAGE = 1 << 20  # the largest request: an argv and an environment
 
@@ -72,22 +72,25 @@ def serve(fd: int):
             data, fds, _, _ = socket.recv_fds(connection, MESSAGE, 3)
             if not data:  # the test process is gone
                 os._exit(0)
+            request = json.loads(data)
             pid = os.fork()
             if pid == 0:
                 signal.set_wakeup_fd(-1)
                 signal.signal(signal.SIGCHLD, signal.SIG_DFL)
                 connection.close(), os.close(wake_read), os.close(wake_write)
-                return json.loads(data), fds
+                return request, fds
             for received in fds:
                 os.close(received)
-            connection.send(json.dumps({"started": pid}).encode())
+            connection.send(json.dumps({"started": pid, "id": request["id"]}).encode())
 
 
 def become(request: dict, fds: list) -> str:
     """Sets up this forked child as `python script.py` would start; returns the script's path."""
     import random
+    import tempfile
 
     import numpy as np
+    import torch
 
     for target, received in zip((0, 1, 2), fds):
         os.dup2(received, target)
@@ -98,13 +101,13 @@ def become(request: dict, fds: list) -> str:
     os.environ.update(request["env"])
     script, *argv = request["argv"][1:]
     sys.argv = [script, *argv]
-    python_path = [p for p in request["env"].get("PYTHONPATH", "").split(os.pathsep) if p]
-    sys.path[:] = [os.path.dirname(os.path.realpath(script)), *python_path, *BASE_PATH]
+    sys.path[:] = [os.path.dirname(os.path.realpath(script)), *python_path(request["env"]), *BASE_PATH]
     unbuffered = bool(request["env"].get("PYTHONUNBUFFERED"))
-    encoding = sys.stdout.encoding
+    encoding, errors = sys.stdout.encoding, sys.stdout.errors
     sys.stdout = sys.__stdout__ = io.TextIOWrapper(
         io.FileIO(1, "w", closefd=False) if unbuffered else io.BufferedWriter(io.FileIO(1, "w", closefd=False)),
         encoding=encoding,
+        errors=errors,
         line_buffering=os.isatty(1),
         write_through=unbuffered,
     )
@@ -117,7 +120,15 @@ def become(request: dict, fds: list) -> str:
     )
     random.seed()  # a new interpreter's generators start from the OS's entropy
     np.random.seed()
+    torch.default_generator.seed()
+    tempfile.tempdir = None  # found again from the child's TMPDIR
     return script
+
+
+def python_path(env) -> list:
+    """PYTHONPATH's entries as the interpreter puts them on sys.path: absolute, an empty one the working folder."""
+    value = env.get("PYTHONPATH", "")
+    return [os.path.abspath(p) for p in value.split(os.pathsep)] if value else []
 
 
 # ---- the client (the tests' side) --------------------------------------------------------------------------------
@@ -136,33 +147,41 @@ class Server:
         theirs.close()
         self.socket = ours
         self.exited = {}  # pid -> wait status, of the children that have ended
+        self.requests = 0
 
     def serves(self, command, env) -> bool:
         if len(command) < 2 or command[0] != sys.executable or not str(command[1]).endswith(".py"):
             return False
         return self.process.poll() is None and loaded(env) == loaded(self.env)
 
-    def receive(self, timeout=None) -> bool:
-        """Reads one message into self.exited (or returns its "started" pid); False if none came within timeout."""
+    def receive(self, timeout=None):
+        """Reads one message: an exit into self.exited (True), a start (its message); False if none came in time."""
         readable, _, _ = select.select([self.socket], [], [], timeout)
         if not readable:
             return False
         data = self.socket.recv(MESSAGE)
         if not data:
-            raise RuntimeError(f"the fork server ended (exit code {self.process.wait()})")
+            raise ServerGone(f"the fork server ended (exit code {self.process.wait()})")
         message = json.loads(data)
         if "exited" in message:
             self.exited[message["exited"]] = message["status"]
             return True
-        return message["started"]
+        self.exited.pop(message["started"], None)  # an earlier child's status under a pid used again
+        return message
 
     def start(self, command, cwd, env, fds) -> int:
+        self.requests += 1
         request = {"argv": [str(c) for c in command], "cwd": os.path.abspath(cwd or os.getcwd()), "env": env}
+        request["id"] = self.requests
         socket.send_fds(self.socket, [json.dumps(request).encode()], fds)
-        while True:
-            started = self.receive()
-            if started is not True:
-                return started
+        while True:  # a start left unread by an interrupted request is passed over
+            message = self.receive()
+            if isinstance(message, dict) and message["id"] == request["id"]:
+                return message["started"]
+
+
+class ServerGone(RuntimeError):
+    pass
 
 
 def loaded(env) -> dict:
@@ -238,6 +257,7 @@ def _fd(stream, default: int) -> int:
 def Popen(command, *, cwd=None, env=None, stdin=None, stdout=None, stderr=None, fresh=False):
     """subprocess.Popen(command, cwd=..., env=..., stdout=..., stderr=...), forked where the server can (fresh=True:
     never). stdout/stderr: None, a file, a file descriptor, subprocess.DEVNULL, or stderr=subprocess.STDOUT."""
+    global _server
     env = dict(os.environ if env is None else env)
     if fresh or not serves(command, env):
         return subprocess.Popen(command, cwd=cwd, env=env, stdin=stdin, stdout=stdout, stderr=stderr)
@@ -247,6 +267,9 @@ def Popen(command, *, cwd=None, env=None, stdin=None, stdout=None, stderr=None, 
     fds = [stdin_fd, stdout_fd, stderr_fd]
     try:
         return Forked(command, server(), server().start(command, cwd, env, fds))
+    except ServerGone:  # it ended (an import of PRELOADED failed, say): a new process, and none forked from now on
+        _server = False
+        return subprocess.Popen(command, cwd=cwd, env=env, stdin=stdin, stdout=stdout, stderr=stderr)
     finally:
         for stream, fd in (
             (stdin if stdin is not None else subprocess.DEVNULL, stdin_fd),
@@ -288,7 +311,7 @@ if __name__ == "__main__":
 
     fd = int(sys.argv[1])
     # what a child's sys.path has past its script's folder and its PYTHONPATH
-    BASE_PATH = [p for p in sys.path[1:] if p not in os.environ.get("PYTHONPATH", "").split(os.pathsep)]
+    BASE_PATH = [p for p in sys.path[1:] if p not in python_path(os.environ)]
     for name in PRELOADED:
         importlib.import_module(name)
     request, fds = serve(fd)

@@ -16,12 +16,14 @@ pytestmark = pytest.mark.skipif(forkserver.server() is None, reason="no fork ser
 # what a script sees of its start, one line each; then its stderr line, then its exit
 PROBE = """import os, random, sys
 preloaded = "torch" in sys.modules
+import torch
+torch_draw = torch.rand(1).item()
 print(sys.argv)
 print(os.getcwd())
 print(sys.path[:2])
 print(__name__, os.environ.get("PROBE_VALUE"), os.environ.get("PYTHONUNBUFFERED"))
 print("preloaded" if preloaded else "new")
-print(random.random())
+print(random.random(), torch_draw)
 print("to stderr", file=sys.stderr)
 if sys.argv[1] == "raise":
     raise ValueError("the probe's error")
@@ -62,13 +64,13 @@ def test_a_forked_script_starts_ends_and_prints_as_a_new_interpreter_runs_it(pro
 
 
 def test_forked_scripts_draw_their_own_global_generators(probe, tmp_path):
-    draws = {
-        forkserver.run([sys.executable, str(probe), "0"], cwd=tmp_path, capture_output=True, text=True).stdout.split()[-1]
-    }
-    draws.add(
-        forkserver.run([sys.executable, str(probe), "0"], cwd=tmp_path, capture_output=True, text=True).stdout.split()[-1]
-    )
-    assert len(draws) == 2
+    """Python's, NumPy's (the probe draws from Python's) and torch's global generators, each drawn anew in a child."""
+    draws = [
+        forkserver.run([sys.executable, str(probe), "0"], cwd=tmp_path, capture_output=True, text=True).stdout.splitlines()[5]
+        for _ in range(2)
+    ]
+    (python_1, torch_1), (python_2, torch_2) = (d.split() for d in draws)
+    assert python_1 != python_2 and torch_1 != torch_2
 
 
 def test_a_variable_read_as_a_library_loads_runs_a_new_process(probe, tmp_path):
@@ -106,6 +108,7 @@ def test_a_forked_process_is_killed_waited_for_and_timed_out_as_a_popen(probe, t
     process.send_signal(signal.SIGKILL)
     assert process.wait() == -signal.SIGKILL
     # unbuffered: every line printed before the kill is in the log, stderr's among them
+    log.close()
     assert (tmp_path / "log").read_text().splitlines()[-2:] == ["to stderr", "before the sleep"]
     with pytest.raises(subprocess.TimeoutExpired):
         forkserver.run([sys.executable, str(probe), "sleep"], cwd=tmp_path, timeout=1, capture_output=True)
