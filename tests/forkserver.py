@@ -4,12 +4,13 @@ NumPy, Gymnasium, tyro and TensorBoard's writer, instead of a new interpreter th
 less a process on a 2-core Zen 3, where the suite starts about 160 of them (docs/tests.md#timing).
 
 The forked child is set up as `python script.py` would start: the script's folder first on `sys.path`, then
-PYTHONPATH's; its argv, cwd, environment and stdin/stdout/stderr; Python's and NumPy's global generators drawn anew;
-an exception or `sys.exit` ends it as it ends a script. Anything else runs as a new process, as `subprocess` runs it:
-a command that is not `sys.executable script.py ...`, and an environment that differs from the server's in a variable
-that the interpreter or a preloaded library reads as it starts (LOADED: OMP_NUM_THREADS, MKL_ENABLE_INSTRUCTIONS,
-PYTHONHASHSEED, ...), which would not reach a library the server has loaded. MuJoCo and dm_control are not preloaded:
-they pick their rendering backend from MUJOCO_GL when imported, which the scripts set first.
+PYTHONPATH's; its argv, cwd, environment and stdin/stdout/stderr; Python's, NumPy's and torch's global generators
+drawn anew; an exception or `sys.exit` ends it as it ends a script. Anything else runs as a new process, as
+`subprocess` runs it: a command that is not `sys.executable script.py ...`, and an environment that differs from the
+server's in a variable that the interpreter or a preloaded library reads as it starts (LOADED: OMP_NUM_THREADS,
+MKL_ENABLE_INSTRUCTIONS, PYTHONHASHSEED, ...), which would not reach a library the server has loaded. MuJoCo and
+dm_control are not preloaded: they pick their rendering backend from MUJOCO_GL when imported, which the scripts set
+first.
 
 What a forked run cannot show: a bug of a fresh interpreter only (a string hash order, an import a preloaded module
 hides). The kill-and-resume tests run their uninterrupted run as a new process and the killed one forked, and
