@@ -247,14 +247,6 @@ class Forked:
         self.send_signal(signal.SIGTERM)
 
 
-def _fd(stream, default: int) -> int:
-    if stream is None:
-        return default
-    if stream == subprocess.DEVNULL:
-        return os.open(os.devnull, os.O_RDWR)
-    return stream if isinstance(stream, int) else stream.fileno()
-
-
 def Popen(command, *, cwd=None, env=None, stdin=None, stdout=None, stderr=None, fresh=False):
     """subprocess.Popen(command, cwd=..., env=..., stdout=..., stderr=...), forked where the server can (fresh=True:
     never). stdout/stderr: None, a file, a file descriptor, subprocess.DEVNULL, or stderr=subprocess.STDOUT."""
@@ -262,23 +254,25 @@ def Popen(command, *, cwd=None, env=None, stdin=None, stdout=None, stderr=None, 
     env = dict(os.environ if env is None else env)
     if fresh or not serves(command, env):
         return subprocess.Popen(command, cwd=cwd, env=env, stdin=stdin, stdout=stdout, stderr=stderr)
-    stdin_fd = _fd(stdin if stdin is not None else subprocess.DEVNULL, 0)
-    stdout_fd = _fd(stdout, 1)
-    stderr_fd = stdout_fd if stderr == subprocess.STDOUT else _fd(stderr, 2)
-    fds = [stdin_fd, stdout_fd, stderr_fd]
+    opened = []  # the /dev/null descriptors opened here for subprocess.DEVNULL (and for stdin by default)
+
+    def fd(stream, default: int) -> int:
+        if stream == subprocess.DEVNULL:
+            opened.append(os.open(os.devnull, os.O_RDWR))
+            return opened[-1]
+        return default if stream is None else stream if isinstance(stream, int) else stream.fileno()
+
+    stdout_fd = fd(stdout, 1)
+    fds = [fd(subprocess.DEVNULL if stdin is None else stdin, 0), stdout_fd]
+    fds.append(stdout_fd if stderr == subprocess.STDOUT else fd(stderr, 2))
     try:
         return Forked(command, server(), server().start(command, cwd, env, fds))
     except ServerGone:  # it ended (an import of PRELOADED failed, say): a new process, and none forked from now on
         _server = False
         return subprocess.Popen(command, cwd=cwd, env=env, stdin=stdin, stdout=stdout, stderr=stderr)
     finally:
-        for stream, fd in (
-            (stdin if stdin is not None else subprocess.DEVNULL, stdin_fd),
-            (stdout, stdout_fd),
-            (stderr, stderr_fd),
-        ):
-            if stream == subprocess.DEVNULL:
-                os.close(fd)
+        for descriptor in opened:
+            os.close(descriptor)
 
 
 def run(command, *, cwd=None, env=None, capture_output=False, text=False, timeout=None, fresh=False):

@@ -114,7 +114,7 @@ def rendering_works():
     probe = f"import gymnasium as gym; e = gym.make('{VIDEO_ENV}', render_mode='rgb_array'); e.reset(seed=0); assert e.render().mean() > 0"
     try:
         return (
-            forkserver.run(
+            subprocess.run(
                 [sys.executable, "-c", probe], env={**os.environ, "MUJOCO_GL": "egl"}, capture_output=True, timeout=120
             ).returncode
             == 0

@@ -3,6 +3,7 @@ they say, on tiny settings. The speed- and memory-measuring tools in tools/speed
 
 import os
 import shutil
+import subprocess
 import sys
 
 import numpy as np
@@ -37,7 +38,7 @@ print(os.environ.get("LD_PRELOAD", "-"), worst, digest.hexdigest())
 def mkl_avx512(tmp_path, *command):
     env = {**os.environ, "MKL_AVX512_BUILD_DIR": str(tmp_path / "build"), "OMP_NUM_THREADS": "1"}
     env.pop("LD_PRELOAD", None)
-    return forkserver.run(
+    return subprocess.run(
         ["bash", os.path.join(REPO, "tools", "mkl_avx512.sh"), *command], capture_output=True, text=True, env=env, timeout=300
     )
 
@@ -60,7 +61,7 @@ def test_mkl_avx512_runs_the_command_with_its_arguments_and_exit_status(tmp_path
 
 def test_mkl_avx512_changes_the_kernels_not_the_results(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "LD_PRELOAD"}
-    default = forkserver.run(
+    default = subprocess.run(
         [sys.executable, "-c", MATMUL_PROBE], capture_output=True, text=True, env={**env, "OMP_NUM_THREADS": "1"}, timeout=300
     )
     wrapped = mkl_avx512(tmp_path, sys.executable, "-c", MATMUL_PROBE)
