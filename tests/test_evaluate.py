@@ -138,6 +138,25 @@ def test_an_actor_that_acts_otherwise_than_the_trained_one_is_refused(fork, tmp_
     assert "does not act as the run's evaluated policy did" in message and "load_policy" in message
 
 
+def test_the_rebuilt_actor_runs_in_eval_mode(tmp_path, monkeypatch):
+    """A fork's actor with dropout, which its evaluations run in eval mode (as forking.md asks), is evaluated in eval
+    mode too: the run's last evaluation again, not a policy dropping units at random."""
+    td3 = load("td3")
+    model, last_eval = train_and_save("td3", tmp_path, monkeypatch)
+
+    class DropoutActor(td3.Actor):  # no parameters of its own: the saved weights load
+        def __init__(self, obs_dim, action_space):
+            super().__init__(obs_dim, action_space)
+            self.dropout = torch.nn.Dropout(0.5)
+
+        def forward(self, x):
+            x = self.dropout(torch.relu(self.fc2(self.dropout(torch.relu(self.fc1(x))))))
+            return torch.tanh(self.fc_mu(x)) * self.action_scale + self.action_bias
+
+    monkeypatch.setattr(td3, "Actor", DropoutActor)
+    assert evaluate.main([model, "--seed", str(SEED + 100), "--episodes", "2"]).mean() == pytest.approx(last_eval, rel=1e-6)
+
+
 def test_a_nan_in_the_probe_fails_the_check_unless_both_policies_give_it(tmp_path, monkeypatch):
     model, last_eval = train_and_save("td3", tmp_path, monkeypatch)
     saved = torch.load(model, weights_only=True)

@@ -73,6 +73,7 @@ def load_policy(script, algo: str, model_path: str, env):
         if hasattr(script, "Normalizer"):  # PPO, RND, EBD: an agent and its observation statistics
             agent = script.Agent(obs_dim, int(np.prod(env.action_space.shape)))
             agent.load_state_dict(saved["actor"])
+            agent.eval()  # as an evaluation runs a network: a dropout layer, say, off
             normalizer = script.Normalizer(obs_dim, gamma=0.99)  # gamma only matters for rewards, not used here
             normalizer.load_state_dict(saved["normalizer"])
 
@@ -82,6 +83,7 @@ def load_policy(script, algo: str, model_path: str, env):
         else:
             actor = script.Actor(obs_dim, env.action_space)
             actor.load_state_dict(saved["actor"])
+            actor.eval()  # as an evaluation runs a network: a dropout layer, say, off
             # SAC's and REDQ's squashed mean action, TD3's and OPARL's (pessimistic) actor; per_seed runs it on one
             # observation, as the scripts' one-seed evaluations do
             act = getattr(actor, "deterministic_action", actor)
