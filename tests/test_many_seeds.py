@@ -6,6 +6,7 @@ evaluations, checkpoint, resume and saved model."""
 
 import copy
 import dataclasses
+import importlib
 import os
 import random
 import signal
@@ -263,7 +264,11 @@ def test_a_seeds_update_is_the_one_seed_update_on_the_same_batch(script, short_r
 
 
 class PerturbedSeedEnvs(SeedEnvs):
-    """SeedEnvs whose second env's rewards are offset: another seed's data, from the environment on."""
+    """SeedEnvs whose second env has another seed and offset rewards: another seed's data and episode ends (Hopper's
+    random-phase episodes end at other steps), from the environment on."""
+
+    def __init__(self, env_id: str, seeds: list, *args, **kwargs):
+        super().__init__(env_id, [s + 50 if len(seeds) == 3 and k == 1 else s for k, s in enumerate(seeds)], *args, **kwargs)
 
     def step(self, actions):
         next_obs, rewards, terminations, truncations, infos = super().step(actions)
@@ -273,21 +278,30 @@ class PerturbedSeedEnvs(SeedEnvs):
         return next_obs, rewards, terminations, truncations, infos
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("script", MANY_SEEDS)
-def test_another_seeds_environment_leaves_a_seeds_whole_run_bit_identical(script, tmp_path, monkeypatch):
-    """The whole loop, not one update: a 3-seed process whose second seed sees other rewards gives the first and the
-    third seed the same replay buffer, weights and evaluations bit for bit, through evaluations, checkpoints and (for
-    OPARL) parameter resets, on Hopper, whose seeds' episodes end at different steps."""
-    module = load(script)
-    monkeypatch.chdir(tmp_path)
+def plain_and_perturbed(module, script: str, monkeypatch) -> tuple:
+    """A 3-seed process's results, as it is and with PerturbedSeedEnvs (`module`: the script, or a fork of it held to
+    the script's settings)."""
     args = {"env_id": "Hopper-v4", "total_timesteps": 360, "learning_starts": 300, "eval_frequency": 120}
     args |= {"checkpoint_frequency": 50, "num_seeds": 3}
     if script == "oparl":
         args["reset_frequency"] = 25  # two resets (iterations 25 and 50) of every seed's optimistic actor at once
-    plain = module.main(small_args(module, run_name="plain{seed}", **args))
+
+    def parsed(**values):
+        return module.Args(**vars(small_args(load(script), **args, **values)))
+
+    plain = module.main(parsed(run_name="plain{seed}"))
     monkeypatch.setattr(module, "SeedEnvs", PerturbedSeedEnvs)
-    perturbed = module.main(small_args(module, run_name="perturbed{seed}", **args))
+    return plain, module.main(parsed(run_name="perturbed{seed}"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", MANY_SEEDS)
+def test_another_seeds_environment_leaves_a_seeds_whole_run_bit_identical(script, tmp_path, monkeypatch):
+    """The whole loop, not one update: a 3-seed process whose second seed sees other rewards and episode ends gives the
+    first and the third seed the same replay buffer, weights and evaluations bit for bit, through evaluations,
+    checkpoints and (for OPARL) parameter resets, on Hopper, whose seeds' episodes end at different steps."""
+    monkeypatch.chdir(tmp_path)
+    plain, perturbed = plain_and_perturbed(load(script), script, monkeypatch)
     assert not torch.equal(plain["rb"].storage[1], perturbed["rb"].storage[1])  # seed index 1 did see other data
     for k in (0, 2):
         assert torch.equal(plain["rb"].storage[k], perturbed["rb"].storage[k])
@@ -295,6 +309,23 @@ def test_another_seeds_environment_leaves_a_seeds_whole_run_bit_identical(script
             assert torch.equal(a, b), f"seed index {k}'s {name}"
         assert plain["seeds_eval_returns"][k] == perturbed["seeds_eval_returns"][k]
     assert [s for s, _ in plain["seeds_eval_returns"][2]] == [0, 120, 240, 360]
+
+
+@pytest.mark.slow
+def test_updates_timed_by_any_seeds_episode_end_reach_the_other_seeds(tmp_path, monkeypatch):
+    """What the whole-run test above catches in a fork: TD3's original extra updates as an episode ends, timed by any
+    seed's end (`ended.any()`), change the first seed's weights when only the second seed's env changed."""
+    anchor = "        run.end_step(global_step)  # training speed"
+    extra = "        if global_step >= args.learning_starts and (terminations | truncations).any():\n"
+    extra += "            update(rb.sample(args.batch_size), True)\n"
+    source = open(os.path.join(REPO, "td3_continuous_action.py")).read()
+    assert anchor in source
+    (tmp_path / "anyend_continuous_action.py").write_text(source.replace(anchor, extra + anchor))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    fork = importlib.import_module("anyend_continuous_action")
+    plain, perturbed = plain_and_perturbed(fork, "td3", monkeypatch)
+    assert not all(torch.equal(a, b) for a, b in zip(seed_params(plain, 0).values(), seed_params(perturbed, 0).values()))
 
 
 @pytest.mark.parametrize("script", MANY_SEEDS)
