@@ -6,6 +6,7 @@ import collections
 import contextlib
 import copy
 import dataclasses
+import functools
 import hashlib
 import inspect
 import itertools
@@ -16,6 +17,7 @@ import re
 import sys
 import textwrap
 import time
+import types
 import weakref
 
 import numpy as np
@@ -56,6 +58,39 @@ def held(names: dict, depth: int = 2):
             yield from held({f"{name}[{i}]": v for i, v in enumerate(x)}, depth - 1)
         elif depth and isinstance(x, dict):
             yield from held({f"{name}[{k!r}]": v for k, v in x.items()}, depth - 1)
+
+
+def enclosed(names: dict, depth: int = 2):
+    """(label, object) for what the functions among `names` hold, `depth` levels down: a closure's variables (the
+    function a helper returns, closing over the model it built there), a functools.partial's arguments, a bound
+    method's object; and what their lists, tuples and dicts hold."""
+    for name, x in names.items():
+        inner = {}
+        if isinstance(x, functools.partial):
+            inner |= {f"{name}'s argument {i}": v for i, v in enumerate(x.args)}
+            inner |= {f"{name}'s argument `{k}`": v for k, v in x.keywords.items()}
+            x = x.func
+        if isinstance(x, types.MethodType):
+            inner[f"{name}'s object"] = x.__self__
+            x = x.__func__
+        if isinstance(x, types.FunctionType) and x.__closure__:
+            for var, cell in zip(x.__code__.co_freevars, x.__closure__):
+                try:
+                    inner[f"{name}'s `{var}`"] = cell.cell_contents
+                except ValueError:  # a cell not yet bound
+                    pass
+        yield from held(inner, 1)
+        if depth > 1:
+            yield from enclosed(inner, depth - 1)
+
+
+def own_nodes(node):
+    """The nodes of `node`'s own code: not those of the functions, lambdas and classes it defines (their def is
+    yielded, not their body)."""
+    for child in ast.iter_child_nodes(node):
+        yield child
+        if not isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
+            yield from own_nodes(child)
 
 
 def main_body(code) -> "ast.AST | None":
@@ -172,6 +207,7 @@ class Carried:
     line: int  # where the loop first reads it (or changes it in place)
     set_at: int  # the line of its last binding before the loop
     value: "ast.expr | None"  # that binding's expression, where it binds the name alone (not x += 1, nor a, b = f())
+    via: str = ""  # a function main defines that rebinds it (nonlocal), where the loop itself does not
 
 
 def value_before_loop(node, frame):
@@ -222,7 +258,7 @@ def carried_locals(code, given=frozenset()) -> list:
 
     kinds = (ast.Assign, ast.AnnAssign, ast.AugAssign, ast.NamedExpr)
     before = sorted(
-        (n for n in ast.walk(body) if isinstance(n, kinds) and n.value is not None and n.lineno < loop.lineno),
+        (n for n in own_nodes(body) if isinstance(n, kinds) and n.value is not None and n.lineno < loop.lineno),
         key=lambda n: (n.lineno, n.col_offset),
     )
     started = min((n.lineno for n in ast.walk(body) if isinstance(n, ast.Call) and from_run(n.func)), default=loop.lineno)
@@ -248,10 +284,36 @@ def carried_locals(code, given=frozenset()) -> list:
     first = {}
     for name, what, line in events:
         first.setdefault(name, (what, line))
-    return [  # a name the loop reads that main binds nowhere before it is a global's, or unbound
+    carried = [  # a name the loop reads that main binds nowhere before it is a global's, or unbound
         Carried(name, code.co_firstlineno + line - 1, set_at[name], value[name])
         for name, (what, line) in first.items()
         if what != "set" and name in carrying and name in set_at and name not in restored | own | set(given)
+    ]
+    # a function main defines that rebinds one of main's names (nonlocal count; count += 1): a counter kept in update
+    for function in (n for n in ast.walk(body) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n is not body):
+        for statement in (n for n in own_nodes(function) if isinstance(n, ast.Nonlocal)):
+            for name in statement.names:
+                if name in set_at and name not in restored | own | set(given) | {c.name for c in carried}:
+                    line = code.co_firstlineno + statement.lineno - 1
+                    carried.append(Carried(name, line, set_at[name], value[name], function.name))
+    return carried
+
+
+def rebound_globals(code) -> list:
+    """(name, function, line) for each module-level name a function of `code`'s script rebinds (global count; count
+    += 1): state the script's module holds, which no checkpoint holds. [] if the source cannot be read."""
+    linecache.checkcache(code.co_filename)
+    try:
+        tree = ast.parse("".join(linecache.getlines(code.co_filename)))
+    except (SyntaxError, ValueError):
+        return []
+    functions = (n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)))
+    return [
+        (name, function.name, statement.lineno)
+        for function in functions
+        for statement in own_nodes(function)
+        if isinstance(statement, ast.Global)
+        for name in statement.names
     ]
 
 
@@ -504,18 +566,15 @@ class Run:
         self.caller = sys._getframe(1)
         watched = {id(x): x for x in [*nets.values(), *optimizers.values(), *parts.values()]}
         self.bound = {name: x for name, x in self.caller.f_locals.items() if id(x) in watched and x is watched[id(x)]}
-        # a layer of a network given is held, and a network given compiled (torch.compile) is its own network too
-        modules = {id(m) for net in nets.values() for m in [net, *ckpt.uncompiled(net).modules()]}
-        for name, x in held(self.caller.f_locals):
-            stateless = isinstance(x, torch.nn.Module) and not x.state_dict()  # a loss module, nn.MSELoss()
-            # ckpt.uncompiled: torch.compile(actor) held beside the actor given is that network
-            if (isinstance(x, torch.nn.Module) and id(ckpt.uncompiled(x)) not in modules and not stateless) or (
-                isinstance(x, torch.optim.Optimizer) and id(x) not in watched
-            ):
-                kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
+        self.check_nets_held(watched, starting=True)
+        script = self.caller.f_globals
+        for name, x in held({k: v for k, v in script.items() if not k.startswith("__")}):
+            if (isinstance(x, torch.nn.Module) and x.state_dict()) or isinstance(x, torch.optim.Optimizer):
                 fail(
-                    f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there"
-                    + ("" if name.isidentifier() else f" (each under a name of its own: '{part_name(name)}': {name})")
+                    f"`{name}`, a {'network' if isinstance(x, torch.nn.Module) else 'optimizer'} of the script's module "
+                    "(built as the script is imported), starts from weights drawn before main seeds torch's generator, "
+                    "another draw in every process, and a checkpoint would not hold it: build it in main after the "
+                    "seeding and add it to run.start's nets (its optimizer to the optimizers)"
                 )
         self.check_optimizers_held(nets, optimizers, parts, watched)
         line = after_end_step(self.caller.f_code) if self.args.checkpoint_frequency else None
@@ -541,6 +600,9 @@ class Run:
                     f"value before the loop ({self.main_line(carried.set_at)}); " + CARRIED_FIX
                 )
             self.carried[carried.name] = (carried, carried_state(value))
+        # module-level names a function of the script rebinds (global count): compared at each checkpoint too
+        rebound = rebound_globals(self.caller.f_code) if self.args.checkpoint_frequency else []
+        self.carried_globals = {name: (fn, line, carried_state(script.get(name))) for name, fn, line in rebound}
         self.check_stacked_for_the_seeds()
         watch_steps(optimizers, len(self.seeds))  # with several seeds: each step's gradients from a loss optimize took
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
@@ -577,6 +639,35 @@ class Run:
         return [
             (k, None if isinstance(env, ckpt.EpisodeRecord) else type(env).__name__) for k, env in enumerate(self.env_list)
         ]
+
+    def check_nets_held(self, watched: dict, starting: bool):
+        """Every network and optimizer main holds is one run.start was given (`watched`, by id): by a name, in a list or
+        dict, or through a function main holds (a closure, a functools.partial's arguments); else a checkpoint would not
+        hold it, and --resume would start it from its initial state. At run.start; at each checkpoint, the optimizers
+        and what main's functions hold (a network main binds after run.start may be a copy loaded into one given: a
+        reset's `fresh`)."""
+        # a layer of a network given is held, and a network given compiled (torch.compile) is its own network too
+        modules = {id(m) for net in self.nets.values() for m in [net, *ckpt.uncompiled(net).modules()]}
+
+        def left_out(x) -> bool:  # a loss module (nn.MSELoss()) has no state; torch.compile(actor) is the actor given
+            if isinstance(x, torch.nn.Module):
+                return id(ckpt.uncompiled(x)) not in modules and bool(x.state_dict())
+            return isinstance(x, torch.optim.Optimizer) and id(x) not in watched
+
+        for name, x in held(self.caller.f_locals):
+            if left_out(x) and (starting or isinstance(x, torch.optim.Optimizer)):
+                kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
+                fail(
+                    f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there"
+                    + ("" if name.isidentifier() else f" (each under a name of its own: '{part_name(name)}': {name})")
+                )
+        for name, x in enclosed(self.caller.f_locals):
+            if left_out(x):
+                what, kind = ("network", "nets") if isinstance(x, torch.nn.Module) else ("optimizer", "optimizers")
+                fail(
+                    f"{name} is a {what} that run.start's {kind} do not hold: a checkpoint would not hold it, and "
+                    f"--resume would start it from its initial state; build it in main and add it there"
+                )
 
     def check_optimizers_held(self, nets: dict, optimizers: dict, parts: dict, watched: dict):
         """Every tensor an optimizer given trains is a checkpoint's too (a parameter of a network given, a tensor part
@@ -789,6 +880,11 @@ class Run:
         return f"{os.path.basename(self.caller.f_code.co_filename)}:{line}"
 
     def carried_line(self, carried) -> str:
+        if carried.via:
+            return (
+                f"`{carried.via}` rebinds main's `{carried.name}` (nonlocal, {self.main_line(carried.line)}), which main's "
+                "loop carries from one step to the next"
+            )
         return f"main's loop carries `{carried.name}` from one step to the next ({self.main_line(carried.line)})"
 
     def check_carried(self, step: int):
@@ -800,6 +896,13 @@ class Run:
                 fail(
                     f"{self.carried_line(carried)}, and by step {step} it is no longer what it was before the loop: no "
                     "checkpoint holds it, so --resume would start it again from that value; " + CARRIED_FIX
+                )
+        for name, (function, line, before) in self.carried_globals.items():
+            if carried_state(self.caller.f_globals.get(name)) != before:
+                fail(
+                    f"`{function}` rebinds the script's module-level `{name}` (global, {self.main_line(line)}), and by step "
+                    f"{step} it is no longer what it was at run.start: no checkpoint holds it, so --resume would start it "
+                    "again from its value as the script is imported; " + CARRIED_FIX
                 )
 
     def held_tensors(self) -> set:
@@ -845,6 +948,7 @@ class Run:
 
     def state(self, step: int) -> list:
         """One checkpoint per seed of the process's state at `step`."""
+        self.check_nets_held({id(x) for x in [*self.nets.values(), *self.optimizers.values(), *self.parts.values()]}, False)
         self.check_state_held()
         self.check_parts_whole()
         state = ckpt.snapshot(self.script, self.args, self.env_list, step, self.nets, self.optimizers, self.parts)

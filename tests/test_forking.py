@@ -2122,6 +2122,105 @@ def test_a_number_main_carries_from_step_to_step_stops_a_run_with_checkpoints(tm
     assert run_fork(tmp_path, in_part, 2, "--checkpoint-frequency", "150").returncode == 0
 
 
+UPDATE_AT = "    def update(batch: Batch, policy_step: bool) -> dict:\n"
+UPDATE_BODY_AT = "        with bf16_autocast(device, args.bf16):\n"
+
+
+def test_a_counter_a_function_of_main_rebinds_stops_a_run_with_checkpoints(tmp_path):
+    """A count of updates kept in main's `num_updates` and rebound by `update` (nonlocal), driving a schedule: a run
+    resumed from a checkpoint would start it again from 0 (a cold hunt: -1563.4 uninterrupted, -1562.5 resumed). Stops
+    at the first checkpoint where it has moved; a run without checkpoints runs."""
+
+    def edit(source):
+        source = source.replace(UPDATE_AT, "    num_updates = 0  # gradient steps taken\n\n" + UPDATE_AT, 1)
+        counted = "        nonlocal num_updates\n        num_updates += 1\n"
+        return source.replace(UPDATE_BODY_AT, counted + UPDATE_BODY_AT, 1)
+
+    fork = edit(td3_source())
+    line = next(i for i, text in enumerate(fork.splitlines(), 1) if "nonlocal num_updates" in text)
+    stop = (
+        f"error: `update` rebinds main's `num_updates` (nonlocal, fork_continuous_action.py:{line}), which main's loop "
+        "carries from one step to the next, and by step 300 it is no longer what it was before the loop"
+    )
+    assert_fork_stops(tmp_path, edit, stop, 1, "--checkpoint-frequency", "150")
+    assert run_fork(tmp_path, edit, 1).returncode == 0
+
+
+def test_a_module_level_counter_a_function_rebinds_stops_a_run_with_checkpoints(tmp_path):
+    """The same count kept at the script's module level and rebound by a function of the script (global): no checkpoint
+    holds it either."""
+
+    def edit(source):
+        counter = "UPDATES = 0\n\n\ndef counted():\n    global UPDATES\n    UPDATES += 1\n\n\n"
+        source = source.replace("def main(args: Args):\n", counter + "def main(args: Args):\n", 1)
+        return source.replace(UPDATE_BODY_AT, "        counted()\n" + UPDATE_BODY_AT, 1)
+
+    fork = edit(td3_source())
+    line = next(i for i, text in enumerate(fork.splitlines(), 1) if "global UPDATES" in text)
+    stop = (
+        f"error: `counted` rebinds the script's module-level `UPDATES` (global, fork_continuous_action.py:{line}), and by "
+        "step 300 it is no longer what it was at run.start: no checkpoint holds it"
+    )
+    assert_fork_stops(tmp_path, edit, stop, 1, "--checkpoint-frequency", "150")
+    assert run_fork(tmp_path, edit, 1).returncode == 0
+
+
+BONUS = """
+def reward_bonus_learner(obs_dim, action_dim, scale=0.1):
+    model = nn.Sequential(nn.Linear(obs_dim + action_dim, 64), nn.ReLU(), nn.Linear(64, 1))
+    optimizer = optim.Adam(model.parameters(), lr=1e-3)
+
+    def learn(batch):
+        predicted = model(torch.cat([batch.observations[0], batch.actions[0]], -1)).squeeze(-1)
+        loss = ((predicted - batch.rewards[0]) ** 2).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        return batch._replace(rewards=batch.rewards + scale * (predicted.detach() - batch.rewards[0]).abs().unsqueeze(0))
+
+    return learn
+
+
+"""
+SAMPLED = "update(rb.sample(args.batch_size), policy_step)"
+
+
+def test_a_network_a_function_main_holds_closes_over_is_refused_at_the_start(tmp_path):
+    """A reward model and its optimizer built in a helper whose returned function main holds (a closure): a checkpoint
+    would not hold them, and --resume would start them again (a cold hunt: -1521.5 uninterrupted, -1536.7 resumed).
+    Refused before the first step, with or without checkpoints; the same helper held through functools.partial too."""
+
+    def edit(source, held="reward_bonus_learner(obs_dim, action_dim)", at="    obs = run.start("):
+        source = source.replace("def main(args: Args):\n", BONUS + "def main(args: Args):\n", 1)
+        source = source.replace(at, f"    with_bonus = {held}\n" + at, 1)
+        return source.replace(SAMPLED, SAMPLED.replace("rb.sample(args.batch_size)", "with_bonus(rb.sample(args.batch_size))"))
+
+    assert "with_bonus(rb.sample(" in edit(td3_source())
+    closure = "error: with_bonus's `model` is a network that run.start's nets do not hold: a checkpoint would not hold it"
+    assert_fork_stops(tmp_path, edit, closure, 1)
+    partial = "functools.partial(lambda learn, batch: learn(batch), reward_bonus_learner(obs_dim, action_dim))"
+    through = "error: with_bonus's argument 0's `model` is a network that run.start's nets do not hold"
+    assert_fork_stops(tmp_path, functools.partial(edit, held=partial), through, 1)
+    after_start = functools.partial(edit, at=LOOP_AT)  # bound after run.start: met where the first checkpoint is written
+    assert_fork_stops(tmp_path, after_start, closure, 1, "--checkpoint-frequency", "150")
+    assert run_fork(tmp_path, after_start, 1).returncode == 0  # no checkpoint, nothing to resume
+
+
+def test_a_network_of_the_scripts_module_is_refused_at_the_start(tmp_path):
+    """A network built at the script's module level draws its weights as the script is imported, before main seeds
+    torch's generator (another draw in every process: a cold hunt's three runs of one seed ended -1522.8, -1510.3 and
+    -1505.3), and no checkpoint holds it: refused before the first step, even given to run.start."""
+
+    def edit(source, given=False):
+        model = "reward_model = nn.Sequential(nn.Linear(3, 64), nn.ReLU(), nn.Linear(64, 1))\n\n\n"
+        source = source.replace("def main(args: Args):\n", model + "def main(args: Args):\n", 1)
+        return source.replace("    nets = {", "    nets = {'reward_model': reward_model, ", 1) if given else source
+
+    stop = "error: `reward_model`, a network of the script's module (built as the script is imported), starts from weights"
+    assert_fork_stops(tmp_path, edit, stop, 1)
+    assert_fork_stops(tmp_path, functools.partial(edit, given=True), stop, 1)
+
+
 def test_a_sum_carried_through_an_episode_stops_at_a_checkpoint_within_the_episode(tmp_path):
     """An episode's return summed in a plain local, set to 0.0 as the episode ends: at a checkpoint between episodes
     (Pendulum's end every 200 steps) it is what it was before the loop, and --resume starts it there; at one within an
