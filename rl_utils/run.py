@@ -823,6 +823,16 @@ class Run:
                     f"not hold it, and --resume would start it from its initial state; add it there "
                     f"(run.start(..., {part_name(name)}={name}))"
                 )
+        for name, x in enclosed(self.caller.f_locals):  # what a function main holds closes over (a helper's scheduler)
+            if id(x) in held_parts or isinstance(x, (type, torch.nn.Module, torch.optim.Optimizer)):
+                continue
+            stateful = callable(getattr(x, "state_dict", None)) and callable(getattr(x, "load_state_dict", None))
+            if stateful or own_generator(x) or isinstance(x, lr_scheduler.ReduceLROnPlateau):
+                fail(
+                    f"{name} ({type(x).__name__}) has a state that run.start's parts do not hold: a checkpoint would not "
+                    "hold it, and --resume would start it from its initial state; hold it in main and add it there "
+                    "(run.start(..., name=it))"
+                )
         own = self.caller.f_globals.get("__name__")  # the script's own classes: a helper object (an OU noise)
         held_tensors = None  # what the checkpoints hold, looked up once, at the first object of the script's own
         for name, x in held(self.caller.f_locals):

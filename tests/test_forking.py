@@ -2206,6 +2206,39 @@ def test_a_network_a_function_main_holds_closes_over_is_refused_at_the_start(tmp
     assert run_fork(tmp_path, after_start, 1).returncode == 0  # no checkpoint, nothing to resume
 
 
+NOISE_MAKER = """
+def noise_maker(seed):
+    rng = np.random.default_rng(seed)
+
+    def noise(shape):
+        return rng.normal(0.0, 0.1, size=shape).astype(np.float32)
+
+    return noise
+
+
+"""
+
+
+def test_a_generator_a_function_main_holds_closes_over_is_refused_in_a_run_with_checkpoints(tmp_path):
+    """Extra exploration noise from a NumPy generator a helper's returned function closes over: a checkpoint would not
+    hold the generator, and --resume would draw again from its start. Refused at run.start where checkpoints are
+    written; a run without them runs."""
+    acted = (
+        "            actions = per_seed(noisy_action)(to_device(obs, device), actor, args.exploration_noise).cpu().numpy()\n"
+    )
+
+    def edit(source):
+        source = source.replace("def main(args: Args):\n", NOISE_MAKER + "def main(args: Args):\n", 1)
+        source = source.replace("    obs = run.start(", "    extra_noise = noise_maker(args.seed)\n    obs = run.start(", 1)
+        added = "            actions = (actions + extra_noise(actions.shape)).clip(-2.0, 2.0)\n"
+        return source.replace(acted, acted + added, 1)
+
+    assert "extra_noise(actions.shape)" in edit(td3_source())
+    stop = "error: extra_noise's `rng` (Generator) has a state that run.start's parts do not hold: a checkpoint would not hold"
+    assert_fork_stops(tmp_path, edit, stop, 1, "--checkpoint-frequency", "150")
+    assert run_fork(tmp_path, edit, 1).returncode == 0
+
+
 def test_a_network_of_the_scripts_module_is_refused_at_the_start(tmp_path):
     """A network built at the script's module level draws its weights as the script is imported, before main seeds
     torch's generator (another draw in every process: a cold hunt's three runs of one seed ended -1522.8, -1510.3 and
