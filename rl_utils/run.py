@@ -60,12 +60,18 @@ def held(names: dict, depth: int = 2):
             yield from held({f"{name}[{k!r}]": v for k, v in x.items()}, depth - 1)
 
 
-def enclosed(names: dict, depth: int = 2):
-    """(label, object) for what the functions among `names` hold, `depth` levels down: a closure's variables (the
-    function a helper returns, closing over the model it built there), a functools.partial's arguments, a bound
-    method's object; and what their lists, tuples and dicts hold."""
-    for name, x in names.items():
+def enclosed(names: dict, own: str = "", skip=frozenset(), depth: int = 2):
+    """(label, object) for what the functions and objects among `names` (and in their lists, tuples and dicts) hold,
+    `depth` levels down: a closure's variables (the function a helper returns, closing over the model it built there),
+    a function's default arguments, a functools.partial's arguments, a bound method's object, the attributes of an
+    object of the script's own class (module `own`: a helper object holding a model and its optimizer); and what their
+    lists, tuples and dicts hold. What `skip` names (by id: run.start's parts, checkpointed whole) is not looked into."""
+    for name, x in held(names, 1):
+        if id(x) in skip:
+            continue
         inner = {}
+        if type(x).__module__ == own and not isinstance(x, (type, torch.nn.Module)) and isinstance(vars_of(x), dict):
+            inner |= {f"{name}.{k}": v for k, v in vars_of(x).items()}
         if isinstance(x, functools.partial):
             inner |= {f"{name}'s argument {i}": v for i, v in enumerate(x.args)}
             inner |= {f"{name}'s argument `{k}`": v for k, v in x.keywords.items()}
@@ -73,15 +79,24 @@ def enclosed(names: dict, depth: int = 2):
         if isinstance(x, types.MethodType):
             inner[f"{name}'s object"] = x.__self__
             x = x.__func__
-        if isinstance(x, types.FunctionType) and x.__closure__:
-            for var, cell in zip(x.__code__.co_freevars, x.__closure__):
+        if isinstance(x, types.FunctionType):
+            inner |= {f"{name}'s default {i}": v for i, v in enumerate(x.__defaults__ or ())}
+            inner |= {f"{name}'s default `{k}`": v for k, v in (x.__kwdefaults__ or {}).items()}
+            for var, cell in zip(x.__code__.co_freevars, x.__closure__ or ()):
                 try:
                     inner[f"{name}'s `{var}`"] = cell.cell_contents
                 except ValueError:  # a cell not yet bound
                     pass
         yield from held(inner, 1)
         if depth > 1:
-            yield from enclosed(inner, depth - 1)
+            yield from enclosed(inner, own, skip, depth - 1)
+
+
+def vars_of(x) -> "dict | None":
+    try:
+        return vars(x)
+    except TypeError:  # no __dict__ (__slots__, a builtin)
+        return None
 
 
 def own_nodes(node):
@@ -91,6 +106,19 @@ def own_nodes(node):
         yield child
         if not isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
             yield from own_nodes(child)
+
+
+def functions_of(node, shadowed=frozenset()):
+    """(function, names an enclosing function between `node` and it binds itself) for each function `node` defines,
+    nested ones too: a nonlocal there names that function's variable, not node's."""
+    for child in own_nodes(node):
+        if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            yield child, shadowed
+            declared = {n for s in own_nodes(child) if isinstance(s, (ast.Nonlocal, ast.Global)) for n in s.names}
+            params = {a.arg for a in [*child.args.posonlyargs, *child.args.args, *child.args.kwonlyargs]}
+            params |= {a.arg for a in (child.args.vararg, child.args.kwarg) if a}
+            stores = {n.id for n in own_nodes(child) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
+            yield from functions_of(child, shadowed | ((params | stores) - declared))
 
 
 def main_body(code) -> "ast.AST | None":
@@ -290,10 +318,23 @@ def carried_locals(code, given=frozenset()) -> list:
         if what != "set" and name in carrying and name in set_at and name not in restored | own | set(given)
     ]
     # a function main defines that rebinds one of main's names (nonlocal count; count += 1): a counter kept in update
-    for function in (n for n in ast.walk(body) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n is not body):
+    for function, shadowed in functions_of(body):
         for statement in (n for n in own_nodes(function) if isinstance(n, ast.Nonlocal)):
             for name in statement.names:
-                if name in set_at and name not in restored | own | set(given) | {c.name for c in carried}:
+                reads = any(  # count += 1, ema = d * ema + ...: what it carries; a stash (last = loss) is overwritten
+                    isinstance(n, ast.Name)
+                    and n.id == name
+                    and isinstance(n.ctx, ast.Load)
+                    or isinstance(n, ast.AugAssign)
+                    and getattr(n.target, "id", None) == name
+                    for n in own_nodes(function)
+                )
+                if (
+                    reads
+                    and name not in shadowed
+                    and name in set_at
+                    and name not in restored | own | set(given) | {c.name for c in carried}
+                ):
                     line = code.co_firstlineno + statement.lineno - 1
                     carried.append(Carried(name, line, set_at[name], value[name], function.name))
     return carried
@@ -652,7 +693,7 @@ class Run:
         def left_out(x) -> bool:  # a loss module (nn.MSELoss()) has no state; torch.compile(actor) is the actor given
             if isinstance(x, torch.nn.Module):
                 return id(ckpt.uncompiled(x)) not in modules and bool(x.state_dict())
-            return isinstance(x, torch.optim.Optimizer) and id(x) not in watched
+            return isinstance(x, torch.optim.Optimizer) and id(x) not in watched and (starting or bool(x.state))
 
         for name, x in held(self.caller.f_locals):
             if left_out(x) and (starting or isinstance(x, torch.optim.Optimizer)):
@@ -661,8 +702,10 @@ class Run:
                     f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there"
                     + ("" if name.isidentifier() else f" (each under a name of its own: '{part_name(name)}': {name})")
                 )
-        for name, x in enclosed(self.caller.f_locals):
-            if left_out(x):
+        named = {id(x) for _, x in held(self.caller.f_locals)}  # a network main itself names: the rule above
+        parts = {id(part) for part in self.parts.values()}
+        for name, x in enclosed(self.caller.f_locals, self.caller.f_globals.get("__name__"), parts):
+            if left_out(x) and (starting or isinstance(x, torch.optim.Optimizer) or id(x) not in named):
                 what, kind = ("network", "nets") if isinstance(x, torch.nn.Module) else ("optimizer", "optimizers")
                 fail(
                     f"{name} is a {what} that run.start's {kind} do not hold: a checkpoint would not hold it, and "
@@ -823,16 +866,6 @@ class Run:
                     f"not hold it, and --resume would start it from its initial state; add it there "
                     f"(run.start(..., {part_name(name)}={name}))"
                 )
-        for name, x in enclosed(self.caller.f_locals):  # what a function main holds closes over (a helper's scheduler)
-            if id(x) in held_parts or isinstance(x, (type, torch.nn.Module, torch.optim.Optimizer)):
-                continue
-            stateful = callable(getattr(x, "state_dict", None)) and callable(getattr(x, "load_state_dict", None))
-            if stateful or own_generator(x) or isinstance(x, lr_scheduler.ReduceLROnPlateau):
-                fail(
-                    f"{name} ({type(x).__name__}) has a state that run.start's parts do not hold: a checkpoint would not "
-                    "hold it, and --resume would start it from its initial state; hold it in main and add it there "
-                    "(run.start(..., name=it))"
-                )
         own = self.caller.f_globals.get("__name__")  # the script's own classes: a helper object (an OU noise)
         held_tensors = None  # what the checkpoints hold, looked up once, at the first object of the script's own
         for name, x in held(self.caller.f_locals):
@@ -850,6 +883,16 @@ class Run:
                         "parts: a checkpoint would not hold it, and --resume would start it again; add it there "
                         f"(run.start(..., {part_name(label)}={label})), or draw from torch's generator, which checkpoints hold"
                     )
+        for name, x in enclosed(self.caller.f_locals, own, held_parts):  # a helper's scheduler a function closes over
+            if id(x) in held_parts or isinstance(x, (type, torch.nn.Module, torch.optim.Optimizer)):
+                continue
+            stateful = callable(getattr(x, "state_dict", None)) and callable(getattr(x, "load_state_dict", None))
+            if stateful or own_generator(x) or isinstance(x, lr_scheduler.ReduceLROnPlateau):
+                fail(
+                    f"{name} ({type(x).__name__}) has a state that run.start's parts do not hold: a checkpoint would not "
+                    "hold it, and --resume would start it from its initial state; hold it in main and add it there "
+                    "(run.start(..., name=it))"
+                )
         for name, optimizer in self.optimizers.items():
             if hasattr(optimizer.step, "_wrapped_by_lr_sched") and id(optimizer) not in held_optimizers:
                 fail(

@@ -2146,6 +2146,30 @@ def test_a_counter_a_function_of_main_rebinds_stops_a_run_with_checkpoints(tmp_p
     assert run_fork(tmp_path, edit, 1).returncode == 0
 
 
+def test_a_reset_from_fresh_copies_and_a_value_a_function_stashes_run_with_checkpoints(tmp_path):
+    """What the checks above leave alone: a reset at step 250 that loads a fresh critic (through a function main
+    defines) and a fresh optimizer into the ones given, both still held by main at later checkpoints; and a value
+    `update` overwrites each time (nonlocal last_qf_loss; last_qf_loss = ...), not carried from step to step."""
+    reset = (
+        "        if global_step == 250:  # reset the critics and their optimizer's state\n"
+        "            fresh_qf = stack_seeds(networks, run.seeds, device)[1]\n"
+        "            reset_critics()\n"
+        "            fresh_optimizer = adam(qf.parameters(), lr=args.learning_rate)\n"
+        "            q_optimizer.load_state_dict(fresh_optimizer.state_dict())\n"
+    )
+    helper = "    def reset_critics():\n        qf.load_state_dict(fresh_qf.state_dict())\n\n"
+    stash = "        nonlocal last_qf_loss\n        last_qf_loss = None\n"
+
+    def edit(source):
+        source = source.replace(UPDATE_AT, "    last_qf_loss = None\n\n" + helper + UPDATE_AT, 1)
+        source = source.replace(UPDATE_BODY_AT, stash + UPDATE_BODY_AT, 1)
+        return source.replace(STEP_AT, reset + STEP_AT, 1)
+
+    assert "reset_critics()" in edit(td3_source()) and "nonlocal last_qf_loss" in edit(td3_source())
+    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
+    assert result.returncode == 0, result.stderr
+
+
 def test_a_module_level_counter_a_function_rebinds_stops_a_run_with_checkpoints(tmp_path):
     """The same count kept at the script's module level and rebound by a function of the script (global): no checkpoint
     holds it either."""
@@ -2204,6 +2228,44 @@ def test_a_network_a_function_main_holds_closes_over_is_refused_at_the_start(tmp
     after_start = functools.partial(edit, at=LOOP_AT)  # bound after run.start: met where the first checkpoint is written
     assert_fork_stops(tmp_path, after_start, closure, 1, "--checkpoint-frequency", "150")
     assert run_fork(tmp_path, after_start, 1).returncode == 0  # no checkpoint, nothing to resume
+
+
+BONUS_OBJECT = """
+class RewardBonus:
+    def __init__(self, obs_dim, action_dim):
+        self.model = nn.Sequential(nn.Linear(obs_dim + action_dim, 64), nn.ReLU(), nn.Linear(64, 1))
+        self.optimizer = optim.Adam(self.model.parameters(), lr=1e-3)
+
+    def learn(self, batch):
+        return reward_bonus_learner(0, 0, model=self.model, optimizer=self.optimizer)(batch)
+
+
+"""
+HELD = {  # how main holds the helper: what the stop names
+    "a helper object": ("RewardBonus(obs_dim, action_dim)", "with_bonus.model is a network"),
+    "its bound method": ("RewardBonus(obs_dim, action_dim).learn", "with_bonus's object.model is a network"),
+    "in a list": ("[reward_bonus_learner(obs_dim, action_dim)][0:1]", "with_bonus[0]'s `model` is a network"),
+    "a default argument": (
+        "(lambda batch, model=nn.Linear(3, 1): batch)",
+        "with_bonus's default 0 is a network",
+    ),
+}
+
+
+@pytest.mark.parametrize("how", HELD)
+def test_a_network_main_reaches_through_an_object_or_a_function_is_refused_at_the_start(how, tmp_path):
+    """The reward model held another way than by a closure main names: as an attribute of an object of the script's
+    own class, through a bound method's object, a closure in a list, a function's default argument."""
+    helper = BONUS.replace("scale=0.1):", "scale=0.1, model=None, optimizer=None):")
+    helper = helper.replace("    model = nn.Sequential(", "    model = model or nn.Sequential(")
+    helper = helper.replace("    optimizer = optim.Adam(", "    optimizer = optimizer or optim.Adam(")
+    held, stop = HELD[how]
+
+    def edit(source):
+        source = source.replace("def main(args: Args):\n", helper + BONUS_OBJECT + "def main(args: Args):\n", 1)
+        return source.replace("    obs = run.start(", f"    with_bonus = {held}\n    obs = run.start(", 1)
+
+    assert_fork_stops(tmp_path, edit, f"error: {stop} that run.start's nets do not hold", 1)
 
 
 NOISE_MAKER = """
