@@ -32,7 +32,7 @@ from rl_utils.envs import SeedEnvs, policy_probe
 from rl_utils.errors import fail, refusal
 from rl_utils.logs import Logs
 from rl_utils.numerics import NonFiniteError
-from rl_utils.seeds import join_seeds, model_of_seed, split_seeds, watch_steps
+from rl_utils.seeds import check_parts_per_seed, join_seeds, model_of_seed, split_seeds, watch_steps
 
 
 def part_name(name: str) -> str:
@@ -608,6 +608,7 @@ class Run:
         watched = {id(x): x for x in [*nets.values(), *optimizers.values(), *parts.values()]}
         self.bound = {name: x for name, x in self.caller.f_locals.items() if id(x) in watched and x is watched[id(x)]}
         self.check_nets_held(watched, starting=True)
+        self.net_attributes = {}  # check_nets_attributes' record: (net, layer, id) -> its plain tensor attributes
         script = self.caller.f_globals
         for name, x in held({k: v for k, v in script.items() if not k.startswith("__")}):
             if (isinstance(x, torch.nn.Module) and x.state_dict()) or isinstance(x, torch.optim.Optimizer):
@@ -645,6 +646,8 @@ class Run:
         rebound = rebound_globals(self.caller.f_code) if self.args.checkpoint_frequency else []
         self.carried_globals = {name: (fn, line, carried_state(script.get(name))) for name, fn, line in rebound}
         self.check_stacked_for_the_seeds()
+        if len(self.seeds) > 1:  # a tensor part (log_alpha) one per seed, with or without checkpoints
+            check_parts_per_seed({name: p for name, p in parts.items() if isinstance(p, torch.Tensor)}, len(self.seeds))
         watch_steps(optimizers, len(self.seeds))  # with several seeds: each step's gradients from a loss optimize took
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
         self.check_state_held()
@@ -668,6 +671,7 @@ class Run:
         if self.checkpoints:
             observations = ckpt.restore(join_seeds(self.checkpoints, parts), self.env_list, nets, optimizers, parts)
             self.restore_changed_flags()
+        self.check_nets_attributes()  # the networks' plain tensor attributes as the loop starts with them
         self.logs = Logs(self.args, self.run_dirs, self.seeds, self.start_step, self.eval_returns, device, self.args_given)
         self.next_checkpoint = self.start_step + self.args.checkpoint_frequency
         if isinstance(envs, SeedEnvs):
@@ -999,8 +1003,31 @@ class Run:
                     "load_state_dict() (a cache recomputed from the state: set it to None in load_state_dict())"
                 )
 
+    def check_nets_attributes(self):
+        """A tensor or array a network given to run.start (or one of its layers) holds as a plain attribute, not as a
+        parameter or buffer (self.value_scale = torch.ones(())), is not in its state_dict(): once it changes (between
+        run.start and a checkpoint), --resume would start it from its initial value. Recorded at run.start."""
+        held = self.held_tensors()
+        for name, net in self.nets.items():
+            for path, module in ckpt.uncompiled(net).named_modules():
+                attributes = {
+                    k: fingerprint(v) for k, v in vars(module).items() if isinstance(v, (np.ndarray, np.generic, torch.Tensor))
+                }
+                now = {k: v for k, v in attributes.items() if v is not None and v[0] not in held}
+                seen = self.net_attributes.setdefault((name, path, id(module)), now)
+                changed = [k for k, v in seen.items() if k in now and now[k][1:] != v[1:]]
+                if changed:
+                    label = ".".join(x for x in (name, path, changed[0]) if x)
+                    fail(
+                        f"`{label}`, a tensor a network holds as a plain attribute (not a parameter or a buffer), changed "
+                        "since run.start: a network's state_dict() leaves it out, so no checkpoint holds it, and --resume "
+                        f"would start it from its initial value; register it as a buffer (self.register_buffer("
+                        f"'{changed[0]}', ...)) and change it in place"
+                    )
+
     def state(self, step: int) -> list:
         """One checkpoint per seed of the process's state at `step`."""
+        self.check_nets_attributes()
         self.check_nets_held({id(x) for x in [*self.nets.values(), *self.optimizers.values(), *self.parts.values()]}, False)
         self.check_state_held()
         self.check_parts_whole()

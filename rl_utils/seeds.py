@@ -759,13 +759,10 @@ def part_share(state, k: int):
     return state
 
 
-def split_seeds(state: dict, parts: dict, eval_returns: list, run_dirs: list) -> list:
-    """One checkpoint per seed from a snapshot() of the stacked seeds: the seed's cut of every parameter, optimizer
-    moment, replay buffer and tensor part, its env and its evaluations; the flags, the step and the process's
-    random generators in all."""
-    n = len(run_dirs)
-    for name in parts if n > 1 else ():  # a part's tensors are one per seed: [n, ...] (a ReplayBuffer's rows, log_alpha)
-        value = state[name]
+def check_parts_per_seed(states: dict, n: int):
+    """With n seeds, each tensor of a part's state (the part itself, or its state_dict()'s) is one per seed, [n, ...]
+    (a ReplayBuffer's rows, SAC's log_alpha): one [1] or [] would be one value every seed trains and reads."""
+    for name, value in states.items():
         tensors = {name: value} if isinstance(value, torch.Tensor) else value if isinstance(value, dict) else {}
         for key, t in tensors.items():
             if isinstance(t, torch.Tensor) and not one_per_seed(t, n):
@@ -773,8 +770,18 @@ def split_seeds(state: dict, parts: dict, eval_returns: list, run_dirs: list) ->
                     ValueError,
                     f"run.start's part `{name}`: its state holds `{key}`, a tensor of shape {list(t.shape)}, but with {n} "
                     f"seeds each tensor of a part is one per seed, [{n}, ...], which a checkpoint cuts into the seeds' "
-                    "shares; give it that leading dimension",
+                    "shares (one tensor for all would be one value every seed trains and reads); give it that leading "
+                    "dimension",
                 )
+
+
+def split_seeds(state: dict, parts: dict, eval_returns: list, run_dirs: list) -> list:
+    """One checkpoint per seed from a snapshot() of the stacked seeds: the seed's cut of every parameter, optimizer
+    moment, replay buffer and tensor part, its env and its evaluations; the flags, the step and the process's
+    random generators in all."""
+    n = len(run_dirs)
+    if n > 1:
+        check_parts_per_seed({name: state[name] for name in parts}, n)
     # an optimizer's state per parameter: its moments are the parameter's shape, one per seed; its step counter
     # (0-d) is the seeds'. The keys cut are recorded, as a moment of a 0-d parameter is 0-d in a seed's cut too.
     cut = {

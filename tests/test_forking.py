@@ -2268,6 +2268,54 @@ def test_a_network_main_reaches_through_an_object_or_a_function_is_refused_at_th
     assert_fork_stops(tmp_path, edit, f"error: {stop} that run.start's nets do not hold", 1)
 
 
+def test_one_alpha_for_every_seed_is_refused_at_the_start(tmp_path):
+    """A SAC fork back to CleanRL's one log_alpha, [1], with two seeds: one temperature every seed trains and reads (a
+    cold hunt: seed 1's return moved from -1828.7 to -1825.5 when only seed 2's env changed). Refused at run.start,
+    with or without checkpoints; with one seed it runs."""
+    sac_source = open(os.path.join(REPO, "sac_continuous_action.py")).read()
+    per_seed_alpha = "    log_alpha = torch.zeros(len(run.seeds), 1, requires_grad=True, device=device)"
+    assert per_seed_alpha in sac_source
+    fork = sac_source.replace(per_seed_alpha, "    log_alpha = torch.zeros(1, requires_grad=True, device=device)", 1)
+    stop = "error: run.start's part `log_alpha`: its state holds `log_alpha`, a tensor of shape [1], but with 2 seeds"
+    assert_fork_stops(tmp_path, lambda _: fork, stop, 2)
+
+
+def test_a_tensor_a_network_holds_as_a_plain_attribute_stops_a_run_with_checkpoints_once_it_changes(tmp_path):
+    """A PPO fork's value scale kept as a plain tensor attribute of Agent (not a buffer), moved after each rollout: a
+    network's state_dict() leaves it out, so --resume would start it again (a cold hunt: -1434.7 resumed, -1411.6
+    uninterrupted). Stops at the first checkpoint after it moved; as a buffer it runs."""
+    source = open(os.path.join(REPO, "ppo_continuous_action.py")).read()
+    logstd = "        self.actor_logstd = nn.Parameter(torch.zeros(action_dim))\n"
+    value = "        return self.critic(x).squeeze(-1)\n"
+    update = "            with run.stop_on_nan(global_step):\n                stats = update_policy("
+    assert logstd in source and value in source and update in source
+
+    def fork(held):
+        edited = source.replace(logstd, logstd + f"        {held}\n", 1).replace(
+            value, "        return self.critic(x).squeeze(-1) * self.value_scale\n", 1
+        )
+        return edited.replace(update, "            agent.value_scale.lerp_(returns.std(), 0.1)\n" + update, 1)
+
+    (tmp_path / "fork_continuous_action.py").write_text(fork("self.value_scale = torch.ones(())"))
+    flags = ["--env-id", "Pendulum-v1", "--num-steps", "128", "--total-timesteps", "512", "--eval-frequency", "512"]
+    flags += ["--eval-episodes", "1", "--checkpoint-frequency", "200", "--run-name", "r{seed}"]
+    command = [sys.executable, str(tmp_path / "fork_continuous_action.py"), *flags]
+    env = {**os.environ, "PYTHONPATH": REPO}
+    result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 1, result.stderr
+    assert (
+        result.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            "error: `agent.value_scale`, a tensor a network holds as a plain attribute (not a parameter or a buffer), changed "
+            "since run.start"
+        )
+    )
+    (tmp_path / "fork_continuous_action.py").write_text(fork("self.register_buffer('value_scale', torch.ones(()))"))
+    result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr
+
+
 NOISE_MAKER = """
 def noise_maker(seed):
     rng = np.random.default_rng(seed)
