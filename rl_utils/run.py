@@ -1005,7 +1005,8 @@ class Run:
 
     def check_nets_attributes(self):
         """A tensor or array a network given to run.start (or one of its layers) holds as a plain attribute, not as a
-        parameter or buffer (self.value_scale = torch.ones(())), is not in its state_dict(): once it changes (between
+        parameter or buffer (self.value_scale = torch.ones(())), or as a buffer registered with persistent=False, is not
+        in its state_dict(): once it changes (between
         run.start and a checkpoint), --resume would start it from its initial value. Recorded at run.start."""
         held = self.held_tensors()
         for name, net in self.nets.items():
@@ -1014,15 +1015,17 @@ class Run:
                     k: fingerprint(v) for k, v in vars(module).items() if isinstance(v, (np.ndarray, np.generic, torch.Tensor))
                 }
                 now = {k: v for k, v in attributes.items() if v is not None and v[0] not in held}
+                unsaved = {k: module._buffers.get(k) for k in module._non_persistent_buffers_set}  # persistent=False
+                now |= {k: fingerprint(v) for k, v in unsaved.items() if v is not None and fingerprint(v) is not None}
                 seen = self.net_attributes.setdefault((name, path, id(module)), now)
                 changed = [k for k, v in seen.items() if k in now and now[k][1:] != v[1:]]
                 if changed:
                     label = ".".join(x for x in (name, path, changed[0]) if x)
                     fail(
-                        f"`{label}`, a tensor a network holds as a plain attribute (not a parameter or a buffer), changed "
-                        "since run.start: a network's state_dict() leaves it out, so no checkpoint holds it, and --resume "
-                        f"would start it from its initial value; register it as a buffer (self.register_buffer("
-                        f"'{changed[0]}', ...)) and change it in place"
+                        f"`{label}`, a tensor a network holds as a plain attribute or a non-persistent buffer (not a "
+                        "parameter or a buffer), changed since run.start: a network's state_dict() leaves it out, so no "
+                        "checkpoint holds it, and --resume would start it from its initial value; register it as a buffer "
+                        f"(self.register_buffer('{changed[0]}', ...), persistent) and change it in place"
                     )
 
     def state(self, step: int) -> list:
