@@ -22,6 +22,8 @@ import weakref
 
 import numpy as np
 import torch
+from torch.nn.utils.spectral_norm import SpectralNorm
+from torch.nn.utils.weight_norm import WeightNorm
 from torch.optim import lr_scheduler
 from tqdm import tqdm
 
@@ -482,6 +484,30 @@ def size_of(x, depth: int = 0) -> int:
     return sum(size_of(v, depth + 1) for v in values)
 
 
+def part_state(part):
+    """A part's state as a checkpoint takes it: the tensor, or its state_dict() (not a ReplayBuffer's, which copies
+    every row, nor one above PART_CHECK_BYTES); None where not taken here."""
+    if isinstance(part, torch.Tensor):
+        return part
+    if isinstance(part, ReplayBuffer) or not callable(getattr(part, "state_dict", None)) or size_of(part) > PART_CHECK_BYTES:
+        return None
+    try:
+        return part.state_dict()
+    except Exception:  # a state_dict() that needs what the run has not made yet: met at the checkpoint
+        return None
+
+
+def part_state_tensors(part) -> list:
+    leaves = torch.utils._pytree.tree_leaves(part_state(part)) if not isinstance(part, torch.Tensor) else []
+    return [v for v in leaves if isinstance(v, (torch.Tensor, np.ndarray))]
+
+
+def recomputed(module) -> set:
+    """The attributes a layer's forward pre-hook computes anew from its parameters (torch.nn.utils.weight_norm's and
+    spectral_norm's `weight`): a cache, not state."""
+    return {hook.name for hook in module._forward_pre_hooks.values() if isinstance(hook, (WeightNorm, SpectralNorm))}
+
+
 def fingerprint(value):
     """(where it is, what it holds) of an array or tensor: its storage's address (a tensor's; an array's id) and a digest
     of its shape, dtype and bytes; None for an array of Python objects or a tensor without plain storage."""
@@ -647,7 +673,8 @@ class Run:
         self.carried_globals = {name: (fn, line, carried_state(script.get(name))) for name, fn, line in rebound}
         self.check_stacked_for_the_seeds()
         if len(self.seeds) > 1:  # a tensor part (log_alpha) one per seed, with or without checkpoints
-            check_parts_per_seed({name: p for name, p in parts.items() if isinstance(p, torch.Tensor)}, len(self.seeds))
+            states = {name: part_state(p) for name, p in parts.items()}
+            check_parts_per_seed({name: state for name, state in states.items() if state is not None}, len(self.seeds))
         watch_steps(optimizers, len(self.seeds))  # with several seeds: each step's gradients from a loss optimize took
         self.check_one_learning_rate_follows_one_seed()  # before check_state_held, which would ask to checkpoint it
         self.check_state_held()
@@ -976,6 +1003,8 @@ class Run:
             add(part)
             for v in getattr(part, "__dict__", {}).values():
                 add(v)
+            for v in part_state_tensors(part):  # what its state_dict() holds, however deep in the part it lies
+                add(v)
         for net in self.nets.values():
             for v in [*net.parameters(), *net.buffers()]:
                 add(v)
@@ -1014,9 +1043,10 @@ class Run:
                 attributes = {
                     k: fingerprint(v) for k, v in vars(module).items() if isinstance(v, (np.ndarray, np.generic, torch.Tensor))
                 }
-                now = {k: v for k, v in attributes.items() if v is not None and v[0] not in held}
+                cache = recomputed(module)
+                now = {k: v for k, v in attributes.items() if v is not None and v[0] not in held and k not in cache}
                 unsaved = {k: module._buffers.get(k) for k in module._non_persistent_buffers_set}  # persistent=False
-                now |= {k: fingerprint(v) for k, v in unsaved.items() if v is not None and fingerprint(v) is not None}
+                now |= {k: f for k, v in unsaved.items() if v is not None and (f := fingerprint(v)) is not None}
                 seen = self.net_attributes.setdefault((name, path, id(module)), now)
                 changed = [k for k, v in seen.items() if k in now and now[k][1:] != v[1:]]
                 if changed:
@@ -1030,7 +1060,6 @@ class Run:
 
     def state(self, step: int) -> list:
         """One checkpoint per seed of the process's state at `step`."""
-        self.check_nets_attributes()
         self.check_nets_held({id(x) for x in [*self.nets.values(), *self.optimizers.values(), *self.parts.values()]}, False)
         self.check_state_held()
         self.check_parts_whole()
@@ -1102,6 +1131,7 @@ class Run:
                 )
         if args.checkpoint_frequency and can_checkpoint and self.next_checkpoint <= step + 1 < args.total_timesteps:
             self.check_carried(step + 1)
+            self.check_nets_attributes()
             ckpt.write_checkpoints(self.run_dirs, self.state(step + 1))
             self.next_checkpoint = step + 1 + args.checkpoint_frequency
 
@@ -1111,6 +1141,7 @@ class Run:
         closed. Returns the runs' folders and evaluations."""
         args = self.args
         if args.checkpoint_frequency:
+            self.check_nets_attributes()
             ckpt.write_checkpoints(self.run_dirs, self.state(args.total_timesteps))
         if args.save_model:
             n = len(self.run_dirs)

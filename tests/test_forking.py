@@ -2283,7 +2283,8 @@ def test_one_alpha_for_every_seed_is_refused_at_the_start(tmp_path):
 def test_a_tensor_a_network_holds_as_a_plain_attribute_stops_a_run_with_checkpoints_once_it_changes(tmp_path):
     """A PPO fork's value scale kept as a plain tensor attribute of Agent (not a buffer), moved after each rollout: a
     network's state_dict() leaves it out, so --resume would start it again (a cold hunt: -1434.7 resumed, -1411.6
-    uninterrupted). Stops at the first checkpoint after it moved, as a non-persistent buffer too; as a buffer it runs."""
+    uninterrupted). Stops at the first checkpoint after it moved, as a non-persistent buffer too; as a buffer it runs, and
+    so does a layer under torch's weight_norm, whose weight is a plain attribute computed anew at each forward."""
     source = open(os.path.join(REPO, "ppo_continuous_action.py")).read()
     logstd = "        self.actor_logstd = nn.Parameter(torch.zeros(action_dim))\n"
     value = "        return self.critic(x).squeeze(-1)\n"
@@ -2311,6 +2312,13 @@ def test_a_tensor_a_network_holds_as_a_plain_attribute_stops_a_run_with_checkpoi
     result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
     assert result.returncode == 1 and "error: `agent.value_scale`, a tensor a network holds" in result.stderr
     (tmp_path / "fork_continuous_action.py").write_text(fork("self.register_buffer('value_scale', torch.ones(()))"))
+    result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr
+    # torch's weight_norm keeps the weight it computes before each forward as a plain attribute: a cache, not state
+    critic_head = "layer_init(nn.Linear(64, 1), std=1.0)"
+    assert critic_head in source
+    normed = source.replace(critic_head, f"torch.nn.utils.weight_norm({critic_head})", 1)
+    (tmp_path / "fork_continuous_action.py").write_text(normed)
     result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
     assert result.returncode == 0, result.stderr
 
