@@ -72,8 +72,9 @@ def enclosed(names: dict, own: str = "", skip=frozenset(), depth: int = 2):
         if id(x) in skip:
             continue
         inner = {}
-        if type(x).__module__ == own and not isinstance(x, (type, torch.nn.Module)) and isinstance(vars_of(x), dict):
-            inner |= {f"{name}.{k}": v for k, v in vars_of(x).items()}
+        attributes = vars_of(x) if type(x).__module__ == own and not isinstance(x, (type, torch.nn.Module)) else None
+        if isinstance(attributes, dict):
+            inner |= {f"{name}.{k}": v for k, v in attributes.items()}
         if isinstance(x, functools.partial):
             inner |= {f"{name}'s argument {i}": v for i, v in enumerate(x.args)}
             inner |= {f"{name}'s argument `{k}`": v for k, v in x.keywords.items()}
@@ -324,11 +325,8 @@ def carried_locals(code, given=frozenset()) -> list:
         for statement in (n for n in own_nodes(function) if isinstance(n, ast.Nonlocal)):
             for name in statement.names:
                 reads = any(  # count += 1, ema = d * ema + ...: what it carries; a stash (last = loss) is overwritten
-                    isinstance(n, ast.Name)
-                    and n.id == name
-                    and isinstance(n.ctx, ast.Load)
-                    or isinstance(n, ast.AugAssign)
-                    and getattr(n.target, "id", None) == name
+                    (isinstance(n, ast.Name) and n.id == name and isinstance(n.ctx, ast.Load))
+                    or (isinstance(n, ast.AugAssign) and getattr(n.target, "id", None) == name)
                     for n in own_nodes(function)
                 )
                 if (
@@ -498,8 +496,7 @@ def part_state(part):
 
 
 def part_state_tensors(part) -> list:
-    leaves = torch.utils._pytree.tree_leaves(part_state(part)) if not isinstance(part, torch.Tensor) else []
-    return [v for v in leaves if isinstance(v, (torch.Tensor, np.ndarray))]
+    return [v for v in torch.utils._pytree.tree_leaves(part_state(part)) if isinstance(v, (torch.Tensor, np.ndarray))]
 
 
 def recomputed(module) -> set:
@@ -633,7 +630,8 @@ class Run:
         self.caller = sys._getframe(1)
         watched = {id(x): x for x in [*nets.values(), *optimizers.values(), *parts.values()]}
         self.bound = {name: x for name, x in self.caller.f_locals.items() if id(x) in watched and x is watched[id(x)]}
-        self.check_nets_held(watched, starting=True)
+        self.watched = set(watched)  # by id: what run.start was given, which the checkpoints hold
+        self.check_nets_held(starting=True)
         self.net_attributes = {}  # check_nets_attributes' record: (net, layer, id) -> its plain tensor attributes
         script = self.caller.f_globals
         for name, x in held({k: v for k, v in script.items() if not k.startswith("__")}):
@@ -712,9 +710,10 @@ class Run:
             (k, None if isinstance(env, ckpt.EpisodeRecord) else type(env).__name__) for k, env in enumerate(self.env_list)
         ]
 
-    def check_nets_held(self, watched: dict, starting: bool):
-        """Every network and optimizer main holds is one run.start was given (`watched`, by id): by a name, in a list or
-        dict, or through a function main holds (a closure, a functools.partial's arguments); else a checkpoint would not
+    def check_nets_held(self, starting: bool):
+        """Every network and optimizer main holds is one run.start was given (self.watched, by id): by a name, in a list or
+        dict, or through a function or object main holds (enclosed: a closure, a partial's arguments, a helper object's
+        attributes); else a checkpoint would not
         hold it, and --resume would start it from its initial state. At run.start; at each checkpoint, the optimizers
         and what main's functions hold (a network main binds after run.start may be a copy loaded into one given: a
         reset's `fresh`)."""
@@ -724,16 +723,17 @@ class Run:
         def left_out(x) -> bool:  # a loss module (nn.MSELoss()) has no state; torch.compile(actor) is the actor given
             if isinstance(x, torch.nn.Module):
                 return id(ckpt.uncompiled(x)) not in modules and bool(x.state_dict())
-            return isinstance(x, torch.optim.Optimizer) and id(x) not in watched and (starting or bool(x.state))
+            return isinstance(x, torch.optim.Optimizer) and id(x) not in self.watched and (starting or bool(x.state))
 
-        for name, x in held(self.caller.f_locals):
+        by_name = list(held(self.caller.f_locals))
+        for name, x in by_name:
             if left_out(x) and (starting or isinstance(x, torch.optim.Optimizer)):
                 kind = "nets" if isinstance(x, torch.nn.Module) else "optimizers"
                 fail(
                     f"`{name}` is not in run.start's {kind}: a checkpoint would not hold it; add it there"
                     + ("" if name.isidentifier() else f" (each under a name of its own: '{part_name(name)}': {name})")
                 )
-        named = {id(x) for _, x in held(self.caller.f_locals)}  # a network main itself names: the rule above
+        named = {id(x) for _, x in by_name}  # a network main itself names: the rule above
         parts = {id(part) for part in self.parts.values()}
         for name, x in enclosed(self.caller.f_locals, self.caller.f_globals.get("__name__"), parts):
             if left_out(x) and (starting or isinstance(x, torch.optim.Optimizer) or id(x) not in named):
@@ -1035,8 +1035,8 @@ class Run:
     def check_nets_attributes(self):
         """A tensor or array a network given to run.start (or one of its layers) holds as a plain attribute, not as a
         parameter or buffer (self.value_scale = torch.ones(())), or as a buffer registered with persistent=False, is not
-        in its state_dict(): once it changes (between
-        run.start and a checkpoint), --resume would start it from its initial value. Recorded at run.start."""
+        in its state_dict(): once it changes (between run.start and a checkpoint), --resume would start it from its
+        initial value. Recorded at run.start."""
         held = self.held_tensors()
         for name, net in self.nets.items():
             for path, module in ckpt.uncompiled(net).named_modules():
@@ -1060,7 +1060,7 @@ class Run:
 
     def state(self, step: int) -> list:
         """One checkpoint per seed of the process's state at `step`."""
-        self.check_nets_held({id(x) for x in [*self.nets.values(), *self.optimizers.values(), *self.parts.values()]}, False)
+        self.check_nets_held(starting=False)
         self.check_state_held()
         self.check_parts_whole()
         state = ckpt.snapshot(self.script, self.args, self.env_list, step, self.nets, self.optimizers, self.parts)

@@ -23,7 +23,7 @@ import torch.nn as nn
 
 import sac_continuous_action as sac
 import td3_continuous_action as td3
-from conftest import OFF_POLICY, REPO, load, needs_cuda, parse, script_command, small_args
+from conftest import OFF_POLICY, REPO, load, needs_cuda, parse, script_command, small_args, source
 import forkserver
 from rl_utils import CudaGraph, SeedEnvs, parse_args, per_seed, stack_seeds
 from rl_utils.buffers import ReplayBuffer
@@ -334,6 +334,18 @@ def assert_fork_stops(tmp_path, edit, error_start: str, num_seeds=1, *extra):
     result = run_fork(tmp_path, edit, num_seeds, *extra)
     assert result.returncode == 1
     assert result.stderr.strip().splitlines()[-1].startswith(error_start)
+
+
+def line_of(fork: str, text: str) -> int:
+    """The number of the fork's first line holding `text`."""
+    return next(i for i, line in enumerate(fork.splitlines(), 1) if text in line)
+
+
+def assert_stops_only_with_checkpoints(tmp_path, edit, error_start: str):
+    """The fork stops (run_fork's, one seed) at a checkpoint of a run writing one every 150 steps, and runs to its end
+    without checkpoints."""
+    assert_fork_stops(tmp_path, edit, error_start, 1, "--checkpoint-frequency", "150")
+    assert run_fork(tmp_path, edit, 1).returncode == 0
 
 
 def assert_one_seed_runs_and_two_stop(tmp_path, edit, error_start: str):
@@ -2137,13 +2149,11 @@ def test_a_counter_a_function_of_main_rebinds_stops_a_run_with_checkpoints(tmp_p
         return source.replace(UPDATE_BODY_AT, counted + UPDATE_BODY_AT, 1)
 
     fork = edit(td3_source())
-    line = next(i for i, text in enumerate(fork.splitlines(), 1) if "nonlocal num_updates" in text)
     stop = (
-        f"error: `update` rebinds main's `num_updates` (nonlocal, fork_continuous_action.py:{line}), which main's loop "
-        "carries from one step to the next, and by step 300 it is no longer what it was before the loop"
+        f"error: `update` rebinds main's `num_updates` (nonlocal, fork_continuous_action.py:{line_of(fork, 'nonlocal num_')}),"
+        " which main's loop carries from one step to the next, and by step 300 it is no longer what it was before the loop"
     )
-    assert_fork_stops(tmp_path, edit, stop, 1, "--checkpoint-frequency", "150")
-    assert run_fork(tmp_path, edit, 1).returncode == 0
+    assert_stops_only_with_checkpoints(tmp_path, edit, stop)
 
 
 def test_a_reset_from_fresh_copies_and_a_value_a_function_stashes_run_with_checkpoints(tmp_path):
@@ -2180,13 +2190,11 @@ def test_a_module_level_counter_a_function_rebinds_stops_a_run_with_checkpoints(
         return source.replace(UPDATE_BODY_AT, "        counted()\n" + UPDATE_BODY_AT, 1)
 
     fork = edit(td3_source())
-    line = next(i for i, text in enumerate(fork.splitlines(), 1) if "global UPDATES" in text)
     stop = (
-        f"error: `counted` rebinds the script's module-level `UPDATES` (global, fork_continuous_action.py:{line}), and by "
-        "step 300 it is no longer what it was at run.start: no checkpoint holds it"
+        f"error: `counted` rebinds the script's module-level `UPDATES` (global, fork_continuous_action.py:"
+        f"{line_of(fork, 'global UPDATES')}), and by step 300 it is no longer what it was at run.start: no checkpoint holds it"
     )
-    assert_fork_stops(tmp_path, edit, stop, 1, "--checkpoint-frequency", "150")
-    assert run_fork(tmp_path, edit, 1).returncode == 0
+    assert_stops_only_with_checkpoints(tmp_path, edit, stop)
 
 
 BONUS = """
@@ -2226,8 +2234,7 @@ def test_a_network_a_function_main_holds_closes_over_is_refused_at_the_start(tmp
     through = "error: with_bonus's argument 0's `model` is a network that run.start's nets do not hold"
     assert_fork_stops(tmp_path, functools.partial(edit, held=partial), through, 1)
     after_start = functools.partial(edit, at=LOOP_AT)  # bound after run.start: met where the first checkpoint is written
-    assert_fork_stops(tmp_path, after_start, closure, 1, "--checkpoint-frequency", "150")
-    assert run_fork(tmp_path, after_start, 1).returncode == 0  # no checkpoint, nothing to resume
+    assert_stops_only_with_checkpoints(tmp_path, after_start, closure)  # without a checkpoint, nothing to resume
 
 
 BONUS_OBJECT = """
@@ -2272,7 +2279,7 @@ def test_one_alpha_for_every_seed_is_refused_at_the_start(tmp_path):
     """A SAC fork back to CleanRL's one log_alpha, [1], with two seeds: one temperature every seed trains and reads (a
     cold hunt: seed 1's return moved from -1828.7 to -1825.5 when only seed 2's env changed). Refused at run.start,
     with or without checkpoints; with one seed it runs."""
-    sac_source = open(os.path.join(REPO, "sac_continuous_action.py")).read()
+    sac_source = source("sac")
     per_seed_alpha = "    log_alpha = torch.zeros(len(run.seeds), 1, requires_grad=True, device=device)"
     assert per_seed_alpha in sac_source
     fork = sac_source.replace(per_seed_alpha, "    log_alpha = torch.zeros(1, requires_grad=True, device=device)", 1)
@@ -2285,41 +2292,39 @@ def test_a_tensor_a_network_holds_as_a_plain_attribute_stops_a_run_with_checkpoi
     network's state_dict() leaves it out, so --resume would start it again (a cold hunt: -1434.7 resumed, -1411.6
     uninterrupted). Stops at the first checkpoint after it moved, as a non-persistent buffer too; as a buffer it runs, and
     so does a layer under torch's weight_norm, whose weight is a plain attribute computed anew at each forward."""
-    source = open(os.path.join(REPO, "ppo_continuous_action.py")).read()
+    ppo = source("ppo")
     logstd = "        self.actor_logstd = nn.Parameter(torch.zeros(action_dim))\n"
     value = "        return self.critic(x).squeeze(-1)\n"
     update = "            with run.stop_on_nan(global_step):\n                stats = update_policy("
-    assert logstd in source and value in source and update in source
+    assert logstd in ppo and value in ppo and update in ppo
+    flags = ["--env-id", "Pendulum-v1", "--num-steps", "128", "--total-timesteps", "512", "--eval-frequency", "512"]
+    flags += ["--eval-episodes", "1", "--checkpoint-frequency", "200", "--run-name", "r{seed}"]
+
+    def run(fork: str):
+        (tmp_path / "fork_continuous_action.py").write_text(fork)
+        command = [sys.executable, str(tmp_path / "fork_continuous_action.py"), *flags]
+        env = {**os.environ, "PYTHONPATH": REPO}
+        return forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
 
     def fork(held):
-        edited = source.replace(logstd, logstd + f"        {held}\n", 1).replace(
+        edited = ppo.replace(logstd, logstd + f"        {held}\n", 1).replace(
             value, "        return self.critic(x).squeeze(-1) * self.value_scale\n", 1
         )
         return edited.replace(update, "            agent.value_scale.lerp_(returns.std(), 0.1)\n" + update, 1)
 
-    (tmp_path / "fork_continuous_action.py").write_text(fork("self.value_scale = torch.ones(())"))
-    flags = ["--env-id", "Pendulum-v1", "--num-steps", "128", "--total-timesteps", "512", "--eval-frequency", "512"]
-    flags += ["--eval-episodes", "1", "--checkpoint-frequency", "200", "--run-name", "r{seed}"]
-    command = [sys.executable, str(tmp_path / "fork_continuous_action.py"), *flags]
-    env = {**os.environ, "PYTHONPATH": REPO}
-    result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    result = run(fork("self.value_scale = torch.ones(())"))
     assert result.returncode == 1, result.stderr
     line = result.stderr.strip().splitlines()[-1]
     assert line.startswith("error: `agent.value_scale`, a tensor a network holds as a plain attribute or a non-persistent ")
     assert "changed since run.start" in line and "self.register_buffer('value_scale', ...), persistent" in line
-    unsaved = fork("self.register_buffer('value_scale', torch.ones(()), persistent=False)")
-    (tmp_path / "fork_continuous_action.py").write_text(unsaved)
-    result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    result = run(fork("self.register_buffer('value_scale', torch.ones(()), persistent=False)"))
     assert result.returncode == 1 and "error: `agent.value_scale`, a tensor a network holds" in result.stderr
-    (tmp_path / "fork_continuous_action.py").write_text(fork("self.register_buffer('value_scale', torch.ones(()))"))
-    result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    result = run(fork("self.register_buffer('value_scale', torch.ones(()))"))
     assert result.returncode == 0, result.stderr
     # torch's weight_norm keeps the weight it computes before each forward as a plain attribute: a cache, not state
     critic_head = "layer_init(nn.Linear(64, 1), std=1.0)"
-    assert critic_head in source
-    normed = source.replace(critic_head, f"torch.nn.utils.weight_norm({critic_head})", 1)
-    (tmp_path / "fork_continuous_action.py").write_text(normed)
-    result = forkserver.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    assert critic_head in ppo
+    result = run(ppo.replace(critic_head, f"torch.nn.utils.weight_norm({critic_head})", 1))
     assert result.returncode == 0, result.stderr
 
 
@@ -2352,8 +2357,7 @@ def test_a_generator_a_function_main_holds_closes_over_is_refused_in_a_run_with_
 
     assert "extra_noise(actions.shape)" in edit(td3_source())
     stop = "error: extra_noise's `rng` (Generator) has a state that run.start's parts do not hold: a checkpoint would not hold"
-    assert_fork_stops(tmp_path, edit, stop, 1, "--checkpoint-frequency", "150")
-    assert run_fork(tmp_path, edit, 1).returncode == 0
+    assert_stops_only_with_checkpoints(tmp_path, edit, stop)
 
 
 def test_a_network_of_the_scripts_module_is_refused_at_the_start(tmp_path):

@@ -20,7 +20,20 @@ import pytest
 import torch
 import torch.nn as nn
 
-from conftest import OFF_POLICY, QUICK, REPO, declared, SCRIPTS, cli_flags, load, refusal, scalars, script_command, small_args
+from conftest import (
+    OFF_POLICY,
+    QUICK,
+    REPO,
+    declared,
+    SCRIPTS,
+    cli_flags,
+    load,
+    refusal,
+    scalars,
+    script_command,
+    small_args,
+    source,
+)
 import forkserver
 from rl_utils import SeedEnvs, evaluate, per_seed, stack_seeds
 from rl_utils.seeds import split_seeds
@@ -318,9 +331,9 @@ def test_updates_timed_by_any_seeds_episode_end_reach_the_other_seeds(tmp_path, 
     anchor = "        run.end_step(global_step)  # training speed"
     extra = "        if global_step >= args.learning_starts and (terminations | truncations).any():\n"
     extra += "            update(rb.sample(args.batch_size), True)\n"
-    source = open(os.path.join(REPO, "td3_continuous_action.py")).read()
-    assert anchor in source
-    (tmp_path / "anyend_continuous_action.py").write_text(source.replace(anchor, extra + anchor))
+    td3 = source("td3")
+    assert anchor in td3
+    (tmp_path / "anyend_continuous_action.py").write_text(td3.replace(anchor, extra + anchor))
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.chdir(tmp_path)
     fork = importlib.import_module("anyend_continuous_action")
