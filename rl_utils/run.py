@@ -238,7 +238,8 @@ class Carried:
     line: int  # where the loop first reads it (or changes it in place)
     set_at: int  # the line of its last binding before the loop
     value: "ast.expr | None"  # that binding's expression, where it binds the name alone (not x += 1, nor a, b = f())
-    via: str = ""  # a function main defines that rebinds it (nonlocal), where the loop itself does not
+    via: str = ""  # a function main defines that rebinds it (nonlocal) or changes it, where the loop itself does not
+    how: str = "nonlocal"  # how `via` changes it: rebinds it (nonlocal), in place (counts[0] += 1), an attribute (calls)
 
 
 def value_before_loop(node, frame):
@@ -320,42 +321,76 @@ def carried_locals(code, given=frozenset()) -> list:
         for name, (what, line) in first.items()
         if what != "set" and name in carrying and name in set_at and name not in restored | own | set(given)
     ]
-    # a function main defines that rebinds one of main's names (nonlocal count; count += 1): a counter kept in update
+    # a function main defines that rebinds one of main's names (nonlocal count; count += 1), changes one in place
+    # (counts[0] += 1, history.append(x)) or adds to an attribute of a function main defines (update.calls += 1)
+    defined = {n.name: n for n in own_nodes(body) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
     for function, shadowed in functions_of(body):
-        for statement in (n for n in own_nodes(function) if isinstance(n, ast.Nonlocal)):
-            for name in statement.names:
-                reads = any(  # count += 1, ema = d * ema + ...: what it carries; a stash (last = loss) is overwritten
-                    (isinstance(n, ast.Name) and n.id == name and isinstance(n.ctx, ast.Load))
-                    or (isinstance(n, ast.AugAssign) and getattr(n.target, "id", None) == name)
-                    for n in own_nodes(function)
-                )
-                if (
-                    reads
-                    and name not in shadowed
-                    and name in set_at
-                    and name not in restored | own | set(given) | {c.name for c in carried}
-                ):
-                    line = code.co_firstlineno + statement.lineno - 1
-                    carried.append(Carried(name, line, set_at[name], value[name], function.name))
+        for name, line, how in changed_by(function, defined):
+            if how == "global":  # the module's: rebound_globals
+                continue
+            if how == "attribute" and name not in set_at:  # a function main defines (def update), as run.start finds it
+                set_at[name] = code.co_firstlineno + defined[name].lineno - 1
+                value[name] = None
+            if name not in shadowed and name in set_at and name not in restored | own | set(given) | {c.name for c in carried}:
+                carried.append(Carried(name, code.co_firstlineno + line - 1, set_at[name], value[name], function.name, how))
     return carried
 
 
+def bound_in(function) -> set:
+    """The names `function` binds itself (its parameters, what it assigns), not those it declares nonlocal or global."""
+    declared = {n for s in own_nodes(function) if isinstance(s, (ast.Nonlocal, ast.Global)) for n in s.names}
+    params = {a.arg for a in [*function.args.posonlyargs, *function.args.args, *function.args.kwonlyargs]}
+    params |= {a.arg for a in (function.args.vararg, function.args.kwarg) if a}
+    stores = {n.id for n in own_nodes(function) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
+    stores |= {n.name for n in own_nodes(function) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))}
+    return (params | stores) - declared
+
+
+def changed_by(function, defined=frozenset()) -> list:
+    """(name, line, how) for each name of an enclosing scope that `function` changes and that carries from one call to
+    the next: rebound from its own value (nonlocal or global count; count += 1; not a stash, last = loss), changed in
+    place (counts[0] += 1, history.append(x)), or an attribute added to of a function in `defined` (update.calls += 1)."""
+    changes, own = [], bound_in(function)
+    for statement in (n for n in own_nodes(function) if isinstance(n, (ast.Nonlocal, ast.Global))):
+        for name in statement.names:
+            reads = any(  # count += 1, ema = d * ema + ...: what it carries; a stash (last = loss) is overwritten
+                (isinstance(n, ast.Name) and n.id == name and isinstance(n.ctx, ast.Load))
+                or (isinstance(n, ast.AugAssign) and getattr(n.target, "id", None) == name)
+                for n in own_nodes(function)
+            )
+            if reads:
+                changes.append((name, statement.lineno, "nonlocal" if isinstance(statement, ast.Nonlocal) else "global"))
+    for n in own_nodes(function):
+        name, how = changed_in_place(n), "in place"
+        target = getattr(n, "target", None)
+        if name is None and isinstance(n, ast.AugAssign) and isinstance(target, ast.Attribute):
+            if isinstance(target.value, ast.Name) and target.value.id in defined:
+                name, how = target.value.id, "attribute"
+        if name is not None and name not in own and name not in {c[0] for c in changes}:
+            changes.append((name, n.lineno, how))
+    return changes
+
+
 def rebound_globals(code) -> list:
-    """(name, function, line) for each module-level name a function of `code`'s script rebinds (global count; count
-    += 1): state the script's module holds, which no checkpoint holds. [] if the source cannot be read."""
+    """(name, function, line, how) for each module-level name a function of `code`'s script rebinds (global count;
+    count += 1), changes in place (STATS["n"] += 1) or adds to an attribute of (a function's, counted.calls += 1):
+    state the script's module holds, which no checkpoint holds. [] if the source cannot be read."""
     linecache.checkcache(code.co_filename)
     try:
         tree = ast.parse("".join(linecache.getlines(code.co_filename)))
     except (SyntaxError, ValueError):
         return []
+    module = {
+        n.id for s in tree.body if isinstance(s, (ast.Assign, ast.AnnAssign)) for n in ast.walk(s) if isinstance(n, ast.Name)
+    }
+    defined = {s.name for s in tree.body if isinstance(s, (ast.FunctionDef, ast.AsyncFunctionDef))}
     functions = (n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)))
-    return [
-        (name, function.name, statement.lineno)
-        for function in functions
-        for statement in own_nodes(function)
-        if isinstance(statement, ast.Global)
-        for name in statement.names
-    ]
+    found = {}
+    for function in functions:
+        for name, line, how in changed_by(function, defined):
+            if how == "global" or (how != "nonlocal" and name in module | defined):
+                found.setdefault(name, (name, function.name, line, how))
+    return list(found.values())
 
 
 def after_end_step(code) -> "int | None":
@@ -522,6 +557,16 @@ def fingerprint(value):
     return where, tuple(value.shape), str(value.dtype), digest
 
 
+def changes(function: str, how: str, whose: str, line: str) -> str:
+    """How `function` changes a name it carries (Carried.how), as an error says it: "`update` rebinds main's `count`
+    (nonlocal, x.py:9)", "`update` changes main's `counts` in place (x.py:9)"."""
+    if how in ("nonlocal", "global"):
+        return f"`{function}` rebinds {whose} ({how}, {line})"
+    if how == "in place":
+        return f"`{function}` changes {whose} in place ({line})"
+    return f"`{function}` adds to an attribute of {whose} ({line})"
+
+
 CARRIED_FIX = (
     "keep it where a checkpoint holds it: compute it from global_step (a schedule: 0.1 * 0.99 ** global_step), keep it in "
     "a flag (args.exploration_noise *= 0.999, which --resume restores), or in a tensor given to run.start's parts and "
@@ -538,6 +583,8 @@ def carried_state(x, depth: int = 0):
     if isinstance(x, (np.ndarray, np.generic, torch.Tensor)):
         seen = fingerprint(x)
         return seen[1:] if seen else ("object", id(x))
+    if isinstance(x, types.FunctionType):  # its attributes (update.calls)
+        return "function", id(x), carried_state(dict(vars(x)), depth)
     if depth < 3 and isinstance(x, (list, tuple, collections.deque)):
         return type(x).__name__, len(x), tuple(carried_state(v, depth + 1) for v in itertools.islice(x, 1000))
     if depth < 3 and isinstance(x, dict):
@@ -668,7 +715,7 @@ class Run:
             self.carried[carried.name] = (carried, carried_state(value))
         # module-level names a function of the script rebinds (global count): compared at each checkpoint too
         rebound = rebound_globals(self.caller.f_code) if self.args.checkpoint_frequency else []
-        self.carried_globals = {name: (fn, line, carried_state(script.get(name))) for name, fn, line in rebound}
+        self.carried_globals = {name: (fn, line, how, carried_state(script.get(name))) for name, fn, line, how in rebound}
         self.check_stacked_for_the_seeds()
         if len(self.seeds) > 1:  # a tensor part (log_alpha) one per seed, with or without checkpoints
             states = {name: part_state(p) for name, p in parts.items()}
@@ -966,8 +1013,8 @@ class Run:
     def carried_line(self, carried) -> str:
         if carried.via:
             return (
-                f"`{carried.via}` rebinds main's `{carried.name}` (nonlocal, {self.main_line(carried.line)}), which main's "
-                "loop carries from one step to the next"
+                changes(carried.via, carried.how, f"main's `{carried.name}`", self.main_line(carried.line))
+                + ", which main's loop carries from one step to the next"
             )
         return f"main's loop carries `{carried.name}` from one step to the next ({self.main_line(carried.line)})"
 
@@ -981,10 +1028,10 @@ class Run:
                     f"{self.carried_line(carried)}, and by step {step} it is no longer what it was before the loop: no "
                     "checkpoint holds it, so --resume would start it again from that value; " + CARRIED_FIX
                 )
-        for name, (function, line, before) in self.carried_globals.items():
+        for name, (function, line, how, before) in self.carried_globals.items():
             if carried_state(self.caller.f_globals.get(name)) != before:
                 fail(
-                    f"`{function}` rebinds the script's module-level `{name}` (global, {self.main_line(line)}), and by step "
+                    changes(function, how, f"the script's module-level `{name}`", self.main_line(line)) + ", and by step "
                     f"{step} it is no longer what it was at run.start: no checkpoint holds it, so --resume would start it "
                     "again from its value as the script is imported; " + CARRIED_FIX
                 )

@@ -13,6 +13,7 @@ import os
 import random
 import re
 import sys
+import textwrap
 import types
 import typing
 
@@ -2195,6 +2196,89 @@ def test_a_module_level_counter_a_function_rebinds_stops_a_run_with_checkpoints(
         f"{line_of(fork, 'global UPDATES')}), and by step 300 it is no longer what it was at run.start: no checkpoint holds it"
     )
     assert_stops_only_with_checkpoints(tmp_path, edit, stop)
+
+
+def test_a_counter_a_function_changes_in_place_stops_a_run_with_checkpoints(tmp_path):
+    """The same count kept where a function changes it without rebinding a name: in a list of main's (`counts[0] +=
+    1` in `update`), as an attribute of `update` itself (`update.calls += 1`), or in a dict at the script's module
+    level (`STATS["updates"] += 1`). No checkpoint holds any of them: each stops at the first checkpoint where it has
+    moved, and runs without checkpoints."""
+
+    def in_list(source):
+        source = source.replace(UPDATE_AT, "    counts = [0]  # gradient steps taken\n\n" + UPDATE_AT, 1)
+        return source.replace(UPDATE_BODY_AT, "        counts[0] += 1\n" + UPDATE_BODY_AT, 1)
+
+    fork = in_list(td3_source())
+    stop = (
+        f"error: `update` changes main's `counts` in place (fork_continuous_action.py:{line_of(fork, 'counts[0] += 1')}),"
+        " which main's loop carries from one step to the next, and by step 300 it is no longer what it was before the loop"
+    )
+    assert_stops_only_with_checkpoints(tmp_path, in_list, stop)
+
+    def as_attribute(source):
+        source = source.replace("    obs = run.start(", "    update.calls = 0\n    obs = run.start(", 1)
+        return source.replace(UPDATE_BODY_AT, "        update.calls += 1\n" + UPDATE_BODY_AT, 1)
+
+    fork = as_attribute(td3_source())
+    stop = (
+        f"error: `update` adds to an attribute of main's `update` (fork_continuous_action.py:"
+        f"{line_of(fork, 'update.calls += 1')}), which main's loop carries from one step to the next, and by step 300"
+    )
+    assert_stops_only_with_checkpoints(tmp_path, as_attribute, stop)
+
+    def in_module_dict(source):
+        counter = 'STATS = {"updates": 0}\n\n\ndef counted():\n    STATS["updates"] += 1\n\n\n'
+        source = source.replace("def main(args: Args):\n", counter + "def main(args: Args):\n", 1)
+        return source.replace(UPDATE_BODY_AT, "        counted()\n" + UPDATE_BODY_AT, 1)
+
+    line = line_of(in_module_dict(td3_source()), '    STATS["updates"] += 1')
+    stop = (
+        f"error: `counted` changes the script's module-level `STATS` in place (fork_continuous_action.py:{line}), and by "
+        "step 300 it is no longer what it was at run.start"
+    )
+    assert_stops_only_with_checkpoints(tmp_path, in_module_dict, stop)
+
+
+def test_changed_by_finds_what_a_function_carries_from_call_to_call():
+    """What a function changes that outlives its call: a name it rebinds from its own value (nonlocal, global), one it
+    changes in place, an attribute of a function it adds to. Not its own names (parameters, locals, a function it
+    defines), a stash it overwrites (nonlocal last; last = x), a dict entry it sets, a tensor it overwrites (copy_), nor
+    what a function it defines changes."""
+    from rl_utils.run import changed_by
+
+    source = textwrap.dedent(
+        """
+        def update(x, counts_given):
+            nonlocal total, last
+            global UPDATES
+            total += x
+            last = x
+            UPDATES = UPDATES + 1
+            counts[0] += 1
+            history.append(x)
+            update.calls += 1
+            other.calls += 1
+            counts_given.append(x)
+            own = []
+            own.append(x)
+            cache["x"] = x
+            noise.mul_(0.99)
+            target.copy_(x)
+
+            def inner():
+                inner_list.append(1)
+        """
+    )
+    function = ast.parse(source).body[0]
+    found = [(name, how) for name, _, how in changed_by(function, {"update"})]
+    assert found == [
+        ("total", "nonlocal"),
+        ("UPDATES", "global"),
+        ("counts", "in place"),
+        ("history", "in place"),
+        ("update", "attribute"),
+        ("noise", "in place"),
+    ]
 
 
 BONUS = """
