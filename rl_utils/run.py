@@ -37,6 +37,19 @@ from rl_utils.numerics import NonFiniteError
 from rl_utils.seeds import check_parts_per_seed, join_seeds, model_of_seed, split_seeds, watch_steps
 
 
+def global_generators() -> dict:
+    """The states of the global random generators a checkpoint holds (Python's, NumPy's, torch's; CUDA's once in
+    use), as bytes, by the name an error gives them."""
+    states = {
+        "Python's": repr(random.getstate()).encode(),
+        "NumPy's": (lambda _, key, *rest: key.tobytes() + repr(rest).encode())(*np.random.get_state()),
+        "torch's": torch.get_rng_state().numpy().tobytes(),
+    }
+    if torch.cuda.is_initialized():
+        states["CUDA's"] = b"".join(state.numpy().tobytes() for state in torch.cuda.get_rng_state_all())
+    return states
+
+
 def part_name(name: str) -> str:
     """A name run.start can take for a part main holds as `name` (`q_schedulers[0]`: q_schedulers_0), not one of a
     checkpoint's own keys."""
@@ -117,11 +130,7 @@ def functions_of(node, shadowed=frozenset()):
     for child in own_nodes(node):
         if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
             yield child, shadowed
-            declared = {n for s in own_nodes(child) if isinstance(s, (ast.Nonlocal, ast.Global)) for n in s.names}
-            params = {a.arg for a in [*child.args.posonlyargs, *child.args.args, *child.args.kwonlyargs]}
-            params |= {a.arg for a in (child.args.vararg, child.args.kwarg) if a}
-            stores = {n.id for n in own_nodes(child) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
-            yield from functions_of(child, shadowed | ((params | stores) - declared))
+            yield from functions_of(child, shadowed | bound_in(child))
 
 
 def main_body(code) -> "ast.AST | None":
@@ -163,30 +172,65 @@ def calls_end_step(node) -> bool:
 
 
 # methods that change their object from what it held (an accumulation: a list's, a deque's or a set's new items, a
-# tensor's in-place arithmetic, mul_); not those that overwrite it whole (copy_, fill_, zero_, a dict's update)
+# tensor's in-place arithmetic, mul_); not those that overwrite it whole (copy_, fill_, zero_, an in-place draw,
+# bernoulli_) or empty it (clear), nor a dict's update
 ADDERS = {"append", "extend", "appendleft", "extendleft", "insert", "add"}
-OVERWRITERS = {"copy_", "fill_", "zero_", "set_", "normal_", "uniform_", "requires_grad_", "share_memory_"}
+OVERWRITERS = {"copy_", "fill_", "zero_", "set_", "requires_grad_", "share_memory_", "clear"}
+OVERWRITERS |= {"normal_", "uniform_", "bernoulli_", "exponential_", "geometric_", "cauchy_", "log_normal_", "random_"}
+
+
+def root_of(target) -> "tuple[str | None, bool]":
+    """The plain name a subscript or attribute chain changes (counts[0], stats["a"]["n"], update.calls) and whether the
+    chain goes through an attribute; (None, ...) where it starts from something else (self.x[0]: self is a name)."""
+    through_attribute = False
+    while isinstance(target, (ast.Subscript, ast.Attribute)):
+        through_attribute |= isinstance(target, ast.Attribute)
+        target = target.value
+    return (target.id if isinstance(target, ast.Name) else None), through_attribute
 
 
 def changed_in_place(node) -> "str | None":
     """The plain name whose object `node` changes from what it held (returns.append(r), noise.mul_(0.99),
-    counts[0] += 1), or None."""
+    counts[0] += 1, stats["a"]["n"] += 1), or None."""
     if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and isinstance(node.func.value, ast.Name):
         method = node.func.attr
         if method in ADDERS or (method.endswith("_") and not method.startswith("_") and method not in OVERWRITERS):
             return node.func.value.id
-    if isinstance(node, ast.AugAssign) and isinstance(node.target, ast.Subscript) and isinstance(node.target.value, ast.Name):
-        return node.target.value.id
+    if isinstance(node, ast.AugAssign) and isinstance(node.target, ast.Subscript):
+        name, through_attribute = root_of(node.target)
+        return None if through_attribute else name
+    return None
+
+
+def overwritten_whole(node) -> "str | None":
+    """The plain name whose object `node` overwrites or empties whole (x.copy_(y), x.fill_(0), x.clear(), x[:] = y),
+    so that what it held before is gone, or None."""
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and isinstance(node.func.value, ast.Name):
+        return node.func.value.id if node.func.attr in OVERWRITERS else None
+    if isinstance(node, ast.Subscript) and isinstance(node.ctx, ast.Store) and isinstance(node.value, ast.Name):
+        whole = isinstance(node.slice, ast.Slice) and not (node.slice.lower or node.slice.upper or node.slice.step)
+        return node.value.id if whole else None
     return None
 
 
 def name_events(node, local=frozenset()):
-    """(name, what, line) for each plain name `node` reads (what: "read"), binds ("set") or changes in place
-    ("changed", which reads it too), in the order Python does it (an assignment's value before its target; `x += 1`
+    """(name, what, line) for each plain name `node` reads (what: "read"), binds or overwrites whole ("set": x = ...,
+    x.fill_(0), x.clear(), x[:] = ...) or changes in place ("changed", which reads it too: x.append(r), x[0] += 1,
+    x.copy_(0.9 * x + y)), in the order Python does it (an assignment's value before its target; `x += 1`
     reads x first); what functions and lambdas defined there read is left out, as are a comprehension's own names."""
     changed = changed_in_place(node)
     if changed and changed not in local:
         yield changed, "changed", node.lineno
+    overwritten = overwritten_whole(node)
+    if overwritten and overwritten not in local:
+        if isinstance(node, ast.Call):  # its arguments first; from its own value (ema.copy_(0.9 * ema + x)): a change
+            inner = [e for a in [*node.args, *(k.value for k in node.keywords)] for e in name_events(a, local)]
+            yield from inner
+            itself = any(name == overwritten and what != "set" for name, what, _ in inner)
+            yield overwritten, "changed" if itself else "set", node.lineno
+            return
+        yield overwritten, "set", node.lineno  # x[:] = ...: the assignment's value came first
+        return
     if isinstance(node, ast.Name):
         if node.id not in local:
             yield node.id, "read" if isinstance(node.ctx, ast.Load) else "set", node.lineno
@@ -238,8 +282,9 @@ class Carried:
     line: int  # where the loop first reads it (or changes it in place)
     set_at: int  # the line of its last binding before the loop
     value: "ast.expr | None"  # that binding's expression, where it binds the name alone (not x += 1, nor a, b = f())
-    via: str = ""  # a function main defines that rebinds it (nonlocal) or changes it, where the loop itself does not
-    how: str = "nonlocal"  # how `via` changes it: rebinds it (nonlocal), in place (counts[0] += 1), an attribute (calls)
+    via: str = ""  # a function main defines that changes it, where the loop itself does not
+    how: str = ""  # how `via` changes it (changed_by): "nonlocal", "in place", "attribute", "default"
+    text: str = ""  # the statement that changes it, as written (counts[0] += 1)
 
 
 def value_before_loop(node, frame):
@@ -321,18 +366,21 @@ def carried_locals(code, given=frozenset()) -> list:
         for name, (what, line) in first.items()
         if what != "set" and name in carrying and name in set_at and name not in restored | own | set(given)
     ]
-    # a function main defines that rebinds one of main's names (nonlocal count; count += 1), changes one in place
-    # (counts[0] += 1, history.append(x)) or adds to an attribute of a function main defines (update.calls += 1)
+    # a function main defines that rebinds one of main's names from its own value (nonlocal count; count += 1),
+    # changes one in place (counts[0] += 1, history.append(x)), changes an attribute of one of its functions
+    # (update.calls += 1) or its own default argument (def update(batch, n=[0]): n[0] += 1): a counter kept in update.
+    # Not a name main's loop binds or empties itself (a list update appends to, emptied at each step)
     defined = {n.name: n for n in own_nodes(body) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
     for function, shadowed in functions_of(body):
-        for name, line, how in changed_by(function, defined):
-            if how == "global":  # the module's: rebound_globals
+        for name, line, how, text in changed_by(function, set(defined)):
+            if how == "global" or name in carrying:  # a module-level name's (rebound_globals), one the loop sets
                 continue
-            if how == "attribute" and name not in set_at:  # a function main defines (def update), as run.start finds it
+            if how in ("attribute", "default") and name not in set_at:  # a function main defines, as run.start finds it
                 set_at[name] = code.co_firstlineno + defined[name].lineno - 1
                 value[name] = None
             if name not in shadowed and name in set_at and name not in restored | own | set(given) | {c.name for c in carried}:
-                carried.append(Carried(name, code.co_firstlineno + line - 1, set_at[name], value[name], function.name, how))
+                line = code.co_firstlineno + line - 1
+                carried.append(Carried(name, line, set_at[name], value[name], function.name, how, text))
     return carried
 
 
@@ -346,50 +394,74 @@ def bound_in(function) -> set:
     return (params | stores) - declared
 
 
+MUTABLE_DEFAULTS = (ast.List, ast.Dict, ast.Set, ast.ListComp, ast.DictComp, ast.SetComp)
+
+
 def changed_by(function, defined=frozenset()) -> list:
-    """(name, line, how) for each name of an enclosing scope that `function` changes and that carries from one call to
-    the next: rebound from its own value (nonlocal or global count; count += 1; not a stash, last = loss), changed in
-    place (counts[0] += 1, history.append(x)), or an attribute added to of a function in `defined` (update.calls += 1)."""
-    changes, own = [], bound_in(function)
+    """(name, line, how, text) for each name of an enclosing scope that `function` changes and that carries from one
+    call to the next: one it rebinds from its own value (how: "nonlocal" or "global"; count += 1, not a stash: last =
+    loss), changes in place ("in place": counts[0] += 1, history.append(x), stats["n"] = stats["n"] + 1; not after
+    overwriting it whole in the same call: x.fill_(0), x.clear()), an attribute of a function in `defined` it changes
+    from its value ("attribute": update.calls += 1), or its own mutable default argument changed in place ("default",
+    under the function's name: def update(batch, n=[0]): n[0] += 1). `text` is the statement as written."""
+    found, own = {}, bound_in(function)
+    first = {}
+    for name, what, _ in name_events(ast.Module(body=function.body, type_ignores=[])):
+        first.setdefault(name, what)
+    stored = {n.id for n in own_nodes(function) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
+    read = {n.id for n in own_nodes(function) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+    read |= {n.target.id for n in own_nodes(function) if isinstance(n, ast.AugAssign) and isinstance(n.target, ast.Name)}
     for statement in (n for n in own_nodes(function) if isinstance(n, (ast.Nonlocal, ast.Global))):
         for name in statement.names:
-            reads = any(  # count += 1, ema = d * ema + ...: what it carries; a stash (last = loss) is overwritten
-                (isinstance(n, ast.Name) and n.id == name and isinstance(n.ctx, ast.Load))
-                or (isinstance(n, ast.AugAssign) and getattr(n.target, "id", None) == name)
-                for n in own_nodes(function)
-            )
-            if reads:
-                changes.append((name, statement.lineno, "nonlocal" if isinstance(statement, ast.Nonlocal) else "global"))
+            if name in stored and name in read:  # count += 1, ema = d * ema + ...; a stash (last = loss) is overwritten
+                how = "nonlocal" if isinstance(statement, ast.Nonlocal) else "global"
+                found.setdefault(name, (name, statement.lineno, how, ast.unparse(statement)))
+    defaults = [*function.args.defaults, *(d for d in function.args.kw_defaults if d is not None)]
+    params = (
+        [*function.args.posonlyargs, *function.args.args][-len(function.args.defaults) :] if function.args.defaults else []
+    )
+    params += [a for a, d in zip(function.args.kwonlyargs, function.args.kw_defaults) if d is not None]
+    mutable = {a.arg for a, d in zip(params, defaults) if isinstance(d, MUTABLE_DEFAULTS)}
     for n in own_nodes(function):
         name, how = changed_in_place(n), "in place"
-        target = getattr(n, "target", None)
-        if name is None and isinstance(n, ast.AugAssign) and isinstance(target, ast.Attribute):
-            if isinstance(target.value, ast.Name) and target.value.id in defined:
-                name, how = target.value.id, "attribute"
-        if name is not None and name not in own and name not in {c[0] for c in changes}:
-            changes.append((name, n.lineno, how))
-    return changes
+        whole = overwritten_whole(n) if isinstance(n, ast.Call) else None
+        if whole and any(isinstance(v, ast.Name) and v.id == whole for a in n.args for v in ast.walk(a)):
+            name = whole  # ema.copy_(0.9 * ema + x): from its own value
+        if isinstance(n, (ast.AugAssign, ast.Assign)):
+            targets = n.targets if isinstance(n, ast.Assign) else [n.target]
+            for target in (t for t in targets if isinstance(t, (ast.Subscript, ast.Attribute))):
+                root, through_attribute = root_of(target)
+                from_itself = isinstance(n, ast.AugAssign) or any(
+                    isinstance(v, ast.Name) and v.id == root for v in ast.walk(n.value)
+                )  # x[k] = x[k] + 1, x.get(k, 0) + 1; not cache[k] = v
+                if root is not None and from_itself and (not through_attribute or root in defined):
+                    name, how = root, "attribute" if through_attribute else "in place"
+        if name is None or first.get(name) == "set":
+            continue
+        if name in mutable:
+            found.setdefault(function.name, (function.name, n.lineno, "default", ast.unparse(n)))
+        elif name not in own:
+            found.setdefault(name, (name, n.lineno, how, ast.unparse(n)))
+    return list(found.values())
 
 
 def rebound_globals(code) -> list:
-    """(name, function, line, how) for each module-level name a function of `code`'s script rebinds (global count;
-    count += 1), changes in place (STATS["n"] += 1) or adds to an attribute of (a function's, counted.calls += 1):
-    state the script's module holds, which no checkpoint holds. [] if the source cannot be read."""
+    """(name, function, line, how, text) for each module-level name a function of `code`'s script changes from call
+    to call (changed_by: global count; count += 1, STATS["n"] += 1, counted.calls += 1, a default argument): state the
+    script's module holds, which no checkpoint holds. [] if the source cannot be read."""
     linecache.checkcache(code.co_filename)
     try:
         tree = ast.parse("".join(linecache.getlines(code.co_filename)))
     except (SyntaxError, ValueError):
         return []
-    module = {
-        n.id for s in tree.body if isinstance(s, (ast.Assign, ast.AnnAssign)) for n in ast.walk(s) if isinstance(n, ast.Name)
-    }
-    defined = {s.name for s in tree.body if isinstance(s, (ast.FunctionDef, ast.AsyncFunctionDef))}
+    module = {n.id for n in own_nodes(tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
+    defined = {n.name for n in own_nodes(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
     functions = (n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)))
     found = {}
     for function in functions:
-        for name, line, how in changed_by(function, defined):
+        for name, line, how, text in changed_by(function, defined):
             if how == "global" or (how != "nonlocal" and name in module | defined):
-                found.setdefault(name, (name, function.name, line, how))
+                found.setdefault(name, (name, function.name, line, how, text))
     return list(found.values())
 
 
@@ -557,14 +629,16 @@ def fingerprint(value):
     return where, tuple(value.shape), str(value.dtype), digest
 
 
-def changes(function: str, how: str, whose: str, line: str) -> str:
-    """How `function` changes a name it carries (Carried.how), as an error says it: "`update` rebinds main's `count`
-    (nonlocal, x.py:9)", "`update` changes main's `counts` in place (x.py:9)"."""
+def change_phrase(function: str, how: str, whose: str, text: str, line: str) -> str:
+    """How `function` changes a name it carries (changed_by's how), as an error says it: "`update` rebinds main's
+    `count` (nonlocal, x.py:9)", "`update` changes main's `counts` in place (`counts[0] += 1`, x.py:9)"."""
     if how in ("nonlocal", "global"):
         return f"`{function}` rebinds {whose} ({how}, {line})"
     if how == "in place":
-        return f"`{function}` changes {whose} in place ({line})"
-    return f"`{function}` adds to an attribute of {whose} ({line})"
+        return f"`{function}` changes {whose} in place (`{text}`, {line})"
+    if how == "attribute":
+        return f"`{function}` changes an attribute of {whose} (`{text}`, {line})"
+    return f"`{function}` changes its own default argument in place (`{text}`, {line})"
 
 
 CARRIED_FIX = (
@@ -583,8 +657,8 @@ def carried_state(x, depth: int = 0):
     if isinstance(x, (np.ndarray, np.generic, torch.Tensor)):
         seen = fingerprint(x)
         return seen[1:] if seen else ("object", id(x))
-    if isinstance(x, types.FunctionType):  # its attributes (update.calls)
-        return "function", id(x), carried_state(dict(vars(x)), depth)
+    if isinstance(x, types.FunctionType):  # its attributes (update.calls) and default arguments (n=[0])
+        return "function", id(x), carried_state([dict(vars(x)), x.__defaults__, x.__kwdefaults__], depth)
     if depth < 3 and isinstance(x, (list, tuple, collections.deque)):
         return type(x).__name__, len(x), tuple(carried_state(v, depth + 1) for v in itertools.islice(x, 1000))
     if depth < 3 and isinstance(x, dict):
@@ -619,9 +693,11 @@ class Run:
         self.seeds = list(range(args.seed, args.seed + getattr(args, "num_seeds", 1)))  # trained side by side
         self.checkpoints = ckpt.load_checkpoints(args.resume, self.script) if args.resume else None  # one per seed
         self.run_dirs = self.folders()
-        self.start_step = self.checkpoints[0]["global_step"] if self.checkpoints else 0
+        self.first_step = self.checkpoints[0]["global_step"] if self.checkpoints else 0
+        self.generators_at_start = None  # run.start's record of the global generators, for start_step's check
+        self.last_logged = -1  # the furthest step run.log has logged at (check_logged_steps)
         self.eval_returns = [c["eval_returns"] for c in self.checkpoints] if self.checkpoints else [[] for _ in self.seeds]
-        self.finished = self.start_step >= args.total_timesteps
+        self.finished = self.first_step >= args.total_timesteps
         if self.finished:
             print(f"{', '.join(self.run_dirs)} had already finished its {args.total_timesteps} steps")
         self.guarded = 0  # how many run.stop_on_nan blocks are open
@@ -701,12 +777,17 @@ class Run:
         # what main's loop carries from step to step outside the checkpoints, as it is before the loop: compared at
         # each checkpoint (check_carried), where a change would be lost on --resume
         self.carried = {}
-        for carried in carried_locals(self.caller.f_code, set(self.bound)) if self.args.checkpoint_frequency else []:
+        found = carried_locals(self.caller.f_code, set(self.bound)) if self.args.checkpoint_frequency else []
+        held_storage = self.held_tensors() if found else set()
+        for carried in found:
             if carried.set_at < self.caller.f_lineno:  # bound before run.start: as it is now (if bound: a flag's if)
-                if carried.name in self.caller.f_locals:
-                    self.carried[carried.name] = (carried, carried_state(self.caller.f_locals[carried.name]))
-                continue
-            value = value_before_loop(carried.value, self.caller)  # bound after it: 0.0, np.zeros(len(run.seeds))
+                value = self.caller.f_locals.get(carried.name, NOT_A_VALUE)
+                if value is NOT_A_VALUE:
+                    continue
+            else:
+                value = value_before_loop(carried.value, self.caller)  # bound after it: 0.0, np.zeros(len(run.seeds))
+            if isinstance(value, torch.Tensor) and value.untyped_storage().data_ptr() in held_storage:
+                continue  # another name of a tensor the checkpoints hold (w = actor.fc.weight, decayed in place)
             if value is NOT_A_VALUE:
                 fail(
                     f"{self.carried_line(carried)}, and no checkpoint holds it: --resume would start it again from its "
@@ -715,7 +796,7 @@ class Run:
             self.carried[carried.name] = (carried, carried_state(value))
         # module-level names a function of the script rebinds (global count): compared at each checkpoint too
         rebound = rebound_globals(self.caller.f_code) if self.args.checkpoint_frequency else []
-        self.carried_globals = {name: (fn, line, how, carried_state(script.get(name))) for name, fn, line, how in rebound}
+        self.carried_globals = {name: (*where, carried_state(script.get(name))) for name, *where in rebound}
         self.check_stacked_for_the_seeds()
         if len(self.seeds) > 1:  # a tensor part (log_alpha) one per seed, with or without checkpoints
             states = {name: part_state(p) for name, p in parts.items()}
@@ -744,11 +825,30 @@ class Run:
             observations = ckpt.restore(join_seeds(self.checkpoints, parts), self.env_list, nets, optimizers, parts)
             self.restore_changed_flags()
         self.check_nets_attributes()  # the networks' plain tensor attributes as the loop starts with them
-        self.logs = Logs(self.args, self.run_dirs, self.seeds, self.start_step, self.eval_returns, device, self.args_given)
-        self.next_checkpoint = self.start_step + self.args.checkpoint_frequency
+        self.logs = Logs(self.args, self.run_dirs, self.seeds, self.first_step, self.eval_returns, device, self.args_given)
+        self.next_checkpoint = self.first_step + self.args.checkpoint_frequency
+        self.args_at_start, self.args_set_in_main = set(vars(self.args)), None
+        if self.args.checkpoint_frequency or self.checkpoints:
+            self.generators_at_start = global_generators()
         if isinstance(envs, SeedEnvs):
             return np.stack(observations) if observations else None
         return observations[0] if observations else None
+
+    @property
+    def start_step(self) -> int:
+        """The step main's loop begins at: 0, or the checkpoint's (for global_step in range(run.start_step, ...)). Read
+        as the loop begins, after run.start, it checks that nothing drew from the global random generators since."""
+        if self.generators_at_start is not None:
+            before, self.generators_at_start = self.generators_at_start, None
+            drawn = [name for name, state in global_generators().items() if state != before.get(name)]
+            if drawn:
+                fail(
+                    f"main drew from {' and '.join(drawn)} random generator between run.start and its loop (a random "
+                    "prior, a fresh network built there): a run resumed from a checkpoint would draw it from the "
+                    "checkpoint's generator, not as the run began; draw it before run.start (and give a tensor that must "
+                    "stay to run.start's parts, a network to its nets), or in the loop"
+                )
+        return self.first_step
 
     def wrapped_envs(self) -> list:
         """(k, the class name of a wrapper around make_env's env, or None) for each env given to run.start: a checkpoint
@@ -858,11 +958,12 @@ class Run:
         step it resumes at; else None."""
         steps = [step for step, _ in self.eval_returns[0]]
         gaps = {b - a for a, b in zip(steps, steps[1:])}
-        if len(gaps) == 1 and steps[-1] + gaps.pop() == self.start_step < self.args.total_timesteps:
-            return self.start_step
+        if len(gaps) == 1 and steps[-1] + gaps.pop() == self.first_step < self.args.total_timesteps:
+            return self.first_step
         return None
 
     def log(self, logs: dict, step: int):
+        self.last_logged = max(self.last_logged, int(step))
         try:
             self.logs.log(logs, step)
         except NonFiniteError as error:
@@ -1013,7 +1114,7 @@ class Run:
     def carried_line(self, carried) -> str:
         if carried.via:
             return (
-                changes(carried.via, carried.how, f"main's `{carried.name}`", self.main_line(carried.line))
+                change_phrase(carried.via, carried.how, f"main's `{carried.name}`", carried.text, self.main_line(carried.line))
                 + ", which main's loop carries from one step to the next"
             )
         return f"main's loop carries `{carried.name}` from one step to the next ({self.main_line(carried.line)})"
@@ -1028,12 +1129,13 @@ class Run:
                     f"{self.carried_line(carried)}, and by step {step} it is no longer what it was before the loop: no "
                     "checkpoint holds it, so --resume would start it again from that value; " + CARRIED_FIX
                 )
-        for name, (function, line, how, before) in self.carried_globals.items():
+        for name, (function, line, how, text, before) in self.carried_globals.items():
             if carried_state(self.caller.f_globals.get(name)) != before:
+                whose = f"the script's module-level `{name}`"
                 fail(
-                    changes(function, how, f"the script's module-level `{name}`", self.main_line(line)) + ", and by step "
-                    f"{step} it is no longer what it was at run.start: no checkpoint holds it, so --resume would start it "
-                    "again from its value as the script is imported; " + CARRIED_FIX
+                    change_phrase(function, how, whose, text, self.main_line(line)) + f", and by step {step} it is no longer "
+                    "what it was at run.start: no checkpoint holds it, so --resume would start it again from that value; "
+                    + CARRIED_FIX
                 )
 
     def held_tensors(self) -> set:
@@ -1176,11 +1278,36 @@ class Run:
                     f"and --resume would restore that one; change it in place instead ({name}.copy_(...), "
                     f"{name}.mul_(...); an object: its load_state_dict(...))"
                 )
+        if self.args_set_in_main is None:  # attributes main gave args after run.start, as the loop's first step left them
+            self.args_set_in_main = {k: carried_state(v) for k, v in vars(args).items() if k not in self.args_at_start}
         if args.checkpoint_frequency and can_checkpoint and self.next_checkpoint <= step + 1 < args.total_timesteps:
+            self.check_logged_steps(step + 1)
+            self.check_args_set_in_main(step + 1)
             self.check_carried(step + 1)
             self.check_nets_attributes()
             ckpt.write_checkpoints(self.run_dirs, self.state(step + 1))
             self.next_checkpoint = step + 1 + args.checkpoint_frequency
+
+    def check_logged_steps(self, step: int):
+        """Nothing is logged at the checkpoint's step or after it: a run resumed from it starts its logs again there,
+        erasing what was logged at and after that step (TensorBoard's purge_step), which it would not log again."""
+        if self.last_logged >= step:
+            fail(
+                f"run.log logged at step {self.last_logged} by the checkpoint at step {step}: a run resumed from it "
+                "would erase what is logged at and after that step (the logs start again there) and not log it again; "
+                "log at the step the loop is at (global_step), and another count (the updates) as a value"
+            )
+
+    def check_args_set_in_main(self, step: int):
+        """An attribute main gives args after run.start is at each checkpoint what it was at the loop's first step's
+        end: --resume restores args at run.start, then main sets it again, so a change since would be lost."""
+        for name, before in self.args_set_in_main.items():
+            if carried_state(getattr(self.args, name, None)) != before:
+                fail(
+                    f"main sets `args.{name}` after run.start, and by step {step} it is no longer what it was after the "
+                    "loop's first step: --resume restores args at run.start, and main would then set it again; set it "
+                    "before run.start (--resume then restores its value at the checkpoint)"
+                )
 
     def finish(self, save: dict, eval_envs=None, policy=None) -> dict:
         """The last checkpoint, --save-model (each seed's cut of the `save` networks, tensors or objects, and how the

@@ -2210,8 +2210,9 @@ def test_a_counter_a_function_changes_in_place_stops_a_run_with_checkpoints(tmp_
 
     fork = in_list(td3_source())
     stop = (
-        f"error: `update` changes main's `counts` in place (fork_continuous_action.py:{line_of(fork, 'counts[0] += 1')}),"
-        " which main's loop carries from one step to the next, and by step 300 it is no longer what it was before the loop"
+        f"error: `update` changes main's `counts` in place (`counts[0] += 1`, fork_continuous_action.py:"
+        f"{line_of(fork, 'counts[0] += 1')}), which main's loop carries from one step to the next, and by step 300 it is no "
+        "longer what it was before the loop"
     )
     assert_stops_only_with_checkpoints(tmp_path, in_list, stop)
 
@@ -2221,7 +2222,7 @@ def test_a_counter_a_function_changes_in_place_stops_a_run_with_checkpoints(tmp_
 
     fork = as_attribute(td3_source())
     stop = (
-        f"error: `update` adds to an attribute of main's `update` (fork_continuous_action.py:"
+        f"error: `update` changes an attribute of main's `update` (`update.calls += 1`, fork_continuous_action.py:"
         f"{line_of(fork, 'update.calls += 1')}), which main's loop carries from one step to the next, and by step 300"
     )
     assert_stops_only_with_checkpoints(tmp_path, as_attribute, stop)
@@ -2233,52 +2234,135 @@ def test_a_counter_a_function_changes_in_place_stops_a_run_with_checkpoints(tmp_
 
     line = line_of(in_module_dict(td3_source()), '    STATS["updates"] += 1')
     stop = (
-        f"error: `counted` changes the script's module-level `STATS` in place (fork_continuous_action.py:{line}), and by "
+        f"error: `counted` changes the script's module-level `STATS` in place (`STATS['updates'] += 1`, "
+        f"fork_continuous_action.py:{line}), and by "
         "step 300 it is no longer what it was at run.start"
     )
     assert_stops_only_with_checkpoints(tmp_path, in_module_dict, stop)
 
 
+def test_a_draw_between_run_start_and_the_loop_stops_a_run_with_checkpoints(tmp_path):
+    """A fixed random prior (or a fresh network) drawn after run.start: a run resumed from a checkpoint draws it from
+    the checkpoint's generator, not as the run began (a cold hunt: -1758.0 uninterrupted, -1742.9 resumed). Stops as
+    the loop begins; drawn before run.start (drawn again as the run began on --resume), or without checkpoints, it runs."""
+    prior = "    prior = torch.randn(obs_dim, device=device)  # a fixed random prior direction\n"
+    used = "        actions = per_seed(noisy_action)(to_device(obs, device) + 0 * prior"
+
+    def edit(source, at=LOOP_AT):
+        source = source.replace(at, prior + at, 1)
+        return source.replace("        actions = per_seed(noisy_action)(to_device(obs, device)", used, 1)
+
+    assert used in edit(td3_source())
+    drawn = (
+        "error: main drew from torch's random generator between run.start and its loop (a random prior, a fresh network "
+        "built there): a run resumed from a checkpoint would draw it from the checkpoint's generator"
+    )
+    assert_stops_only_with_checkpoints(tmp_path, edit, drawn)
+    before = functools.partial(edit, at="    obs = run.start(")
+    assert run_fork(tmp_path, before, 1, "--checkpoint-frequency", "150").returncode == 0
+
+
+def test_logging_past_the_loop_step_stops_a_run_with_checkpoints(tmp_path):
+    """Losses logged on another axis than the loop's step (REDQ's updates: step x utd_ratio): a run resumed from a
+    checkpoint starts its logs again at the checkpoint's step, erasing every point logged at or after it, which it
+    does not log again (a cold hunt: the point at 2020 lost). Stops at the checkpoint; without checkpoints it runs."""
+    edit = lambda s: s.replace("run.log(logs, global_step)", "run.log(logs, global_step * 10)", 1)  # noqa: E731
+    assert "global_step * 10)" in edit(td3_source())
+    stop = "error: run.log logged at step 2000 by the checkpoint at step 300: a run resumed from it would erase what is"
+    assert_stops_only_with_checkpoints(tmp_path, edit, stop)
+
+
+def test_an_attribute_main_gives_args_after_run_start_and_changes_stops_a_run_with_checkpoints(tmp_path):
+    """A count kept on args, set after run.start and counted up in the loop: --resume restores args at run.start and
+    main sets it again (a cold hunt: 50 uninterrupted, 0 resumed). Stops at the first checkpoint; set before run.start
+    (which --resume restores) it runs."""
+
+    def edit(source, at=LOOP_AT):
+        source = source.replace(at, "    args.acted = 0  # steps the actor chose\n" + at, 1)
+        return source.replace(STEP_AT, "        args.acted += 1\n" + STEP_AT, 1)
+
+    stop = (
+        "error: main sets `args.acted` after run.start, and by step 150 it is no longer what it was after the loop's "
+        "first step: --resume restores args at run.start"
+    )
+    assert_stops_only_with_checkpoints(tmp_path, edit, stop)
+    before = functools.partial(edit, at="    obs = run.start(")
+    assert run_fork(tmp_path, before, 1, "--checkpoint-frequency", "150").returncode == 0
+
+
+def test_another_name_of_a_held_weight_changed_in_place_runs_with_checkpoints(tmp_path):
+    """A weight decayed by hand through another name (w = actor.fc_mu.weight; w.mul_(0.9999)): the checkpoints hold
+    it, under the network's name, so a run with checkpoints runs; bound before run.start or after it."""
+
+    def edit(source, at=LOOP_AT):
+        source = source.replace(at, "    decayed = actor.fc_mu.weight\n" + at, 1)
+        return source.replace(STEP_AT, "        with torch.no_grad():\n            decayed.mul_(0.9999)\n" + STEP_AT, 1)
+
+    for at in (LOOP_AT, "    obs = run.start("):
+        result = run_fork(tmp_path, functools.partial(edit, at=at), 1, "--checkpoint-frequency", "150")
+        assert result.returncode == 0, result.stderr
+
+
 def test_changed_by_finds_what_a_function_carries_from_call_to_call():
     """What a function changes that outlives its call: a name it rebinds from its own value (nonlocal, global), one it
-    changes in place, an attribute of a function it adds to. Not its own names (parameters, locals, a function it
-    defines), a stash it overwrites (nonlocal last; last = x), a dict entry it sets, a tensor it overwrites (copy_), nor
-    what a function it defines changes."""
+    changes in place (from its own value, however written: += on an entry, a new item, x[k] = x[k] + 1, an in-place
+    method, x.copy_(f(x))), an attribute of a function it changes from its value, its own mutable default argument.
+    Not its own names (parameters, locals, a function it defines), a stash it overwrites (nonlocal last; last = x), an
+    entry it sets (cache[k] = v), a tensor it overwrites or draws into whole before changing it (fill_, bernoulli_),
+    a list it empties first, an attribute of another object, nor what a function it defines changes."""
     from rl_utils.run import changed_by
 
     source = textwrap.dedent(
         """
-        def update(x, counts_given):
-            nonlocal total, last
+        def update(x, counts_given, n=[0], *, seen={}):
+            nonlocal total, last, listed
             global UPDATES
             total += x
             last = x
             UPDATES = UPDATES + 1
+            listed.append(x)
             counts[0] += 1
             history.append(x)
+            stats["a"]["n"] += 1
+            tally["n"] = tally.get("n", 0) + 1
             update.calls += 1
+            update.seen = getattr(update, "seen", 0) + 1
             other.calls += 1
+            self_like.stats["n"] += 1
             counts_given.append(x)
             own = []
             own.append(x)
             cache["x"] = x
             noise.mul_(0.99)
+            ema.copy_(0.9 * ema + x)
             target.copy_(x)
+            scratch.fill_(0.0)
+            scratch.add_(1.0)
+            mask.bernoulli_(0.5)
+            logs.clear()
+            logs.append(x)
+            n[0] += 1
 
             def inner():
                 inner_list.append(1)
         """
     )
     function = ast.parse(source).body[0]
-    found = [(name, how) for name, _, how in changed_by(function, {"update"})]
+    found = [(name, how, text) for name, _, how, text in changed_by(function, {"update"})]
     assert found == [
-        ("total", "nonlocal"),
-        ("UPDATES", "global"),
-        ("counts", "in place"),
-        ("history", "in place"),
-        ("update", "attribute"),
-        ("noise", "in place"),
+        ("total", "nonlocal", "nonlocal total, last, listed"),
+        ("UPDATES", "global", "global UPDATES"),
+        ("listed", "in place", "listed.append(x)"),
+        ("counts", "in place", "counts[0] += 1"),
+        ("history", "in place", "history.append(x)"),
+        ("stats", "in place", "stats['a']['n'] += 1"),
+        ("tally", "in place", "tally['n'] = tally.get('n', 0) + 1"),
+        ("update", "attribute", "update.calls += 1"),
+        ("noise", "in place", "noise.mul_(0.99)"),
+        ("ema", "in place", "ema.copy_(0.9 * ema + x)"),
     ]
+    defaults = [(name, how, text) for name, _, how, text in changed_by(ast.parse(source).body[0], set())]
+    assert ("update", "default", "n[0] += 1") in defaults and ("update", "attribute", "update.calls += 1") not in defaults
 
 
 BONUS = """
@@ -2317,8 +2401,9 @@ def test_a_network_a_function_main_holds_closes_over_is_refused_at_the_start(tmp
     partial = "functools.partial(lambda learn, batch: learn(batch), reward_bonus_learner(obs_dim, action_dim))"
     through = "error: with_bonus's argument 0's `model` is a network that run.start's nets do not hold"
     assert_fork_stops(tmp_path, functools.partial(edit, held=partial), through, 1)
-    after_start = functools.partial(edit, at=LOOP_AT)  # bound after run.start: met where the first checkpoint is written
-    assert_stops_only_with_checkpoints(tmp_path, after_start, closure)  # without a checkpoint, nothing to resume
+    after_start = functools.partial(edit, at=LOOP_AT)  # built after run.start: its draw is met as the loop begins
+    drawn = "error: main drew from torch's random generator between run.start and its loop"
+    assert_stops_only_with_checkpoints(tmp_path, after_start, drawn)  # without a checkpoint, nothing to resume
 
 
 BONUS_OBJECT = """
@@ -2546,6 +2631,19 @@ def test_carried_locals_finds_what_a_loop_reads_before_it_sets_it_or_changes_in_
             run.end_step(step)
             step += 1
 
+    def smoothed(run):
+        ema = torch.zeros(1)
+        for step in range(3):
+            ema.copy_(0.9 * ema + step)  # from its own value
+            run.end_step(step)
+
+    def emptied(run):  # emptied before it is added to, at each step
+        logs = []
+        for step in range(3):
+            logs.clear()
+            logs.append(step)
+            run.end_step(len(logs))
+
     def without_end_step(run):
         total = 0
         for step in range(3):
@@ -2565,7 +2663,8 @@ def test_carried_locals_finds_what_a_loop_reads_before_it_sets_it_or_changes_in_
         ("counts", 11, 2, "{'n': 0}"),
     ]
     assert found(counted_from_zero) == [("step", 2, 1, "0")]
-    for fine in (overwritten, counted, set_first, without_end_step):
+    assert found(smoothed) == [("ema", 3, 1, "torch.zeros(1)")]
+    for fine in (overwritten, counted, set_first, emptied, without_end_step):
         assert found(fine) == [], fine.__name__
 
 
