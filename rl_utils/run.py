@@ -50,6 +50,34 @@ def global_generators() -> dict:
     return states
 
 
+def args_counted(code, names: set) -> set:
+    """The attributes of `names` (main's names for args) that main or a function it defines changes from their own
+    value (args.acted += 1, args.acted = args.acted + 1); not one set anew (args.frac = 1 - step / total)."""
+    body = main_body(code)
+    counted = set()
+    for n in ast.walk(body) if body is not None else ():
+        targets = n.targets if isinstance(n, ast.Assign) else [n.target] if isinstance(n, ast.AugAssign) else []
+        for t in targets:
+            if isinstance(t, ast.Attribute) and isinstance(t.value, ast.Name) and t.value.id in names:
+                if isinstance(n, ast.AugAssign) or from_its_value(t, n.value):
+                    counted.add(t.attr)
+    return counted
+
+
+def fresh_run_only(frame) -> bool:
+    """Whether main runs code between run.start and its loop only in a fresh run (if not run.checkpoints: a warm-up
+    of random steps): a resumed run skips it, so its draws are not redrawn on --resume."""
+    body = main_body(frame.f_code)
+    loop = next((loop for loop in loops(body) if calls_end_step(loop)), None) if body is not None else None
+    if loop is None:
+        return False
+    start = frame.f_lineno - frame.f_code.co_firstlineno + 1  # run.start's line, in body's numbering
+    between = [n for n in own_nodes(body) if isinstance(n, ast.If) and start < n.lineno < loop.lineno]
+    return any(
+        isinstance(v, ast.Attribute) and v.attr in ("checkpoints", "start_step") for n in between for v in ast.walk(n.test)
+    )
+
+
 def part_name(name: str) -> str:
     """A name run.start can take for a part main holds as `name` (`q_schedulers[0]`: q_schedulers_0), not one of a
     checkpoint's own keys."""
@@ -202,6 +230,31 @@ def changed_in_place(node) -> "str | None":
     return None
 
 
+def overwrites_from_itself(call, name: str) -> bool:
+    """Whether an overwriting call's arguments read the name it overwrites (ema.copy_(0.9 * ema + x)): a change."""
+    arguments = [*call.args, *(k.value for k in call.keywords)]
+    return any(isinstance(v, ast.Name) and v.id == name for a in arguments for v in ast.walk(a))
+
+
+def from_its_value(target, value) -> bool:
+    """Whether an assignment to an entry or attribute (stats["n"] = ..., update.calls = ...) computes it from that
+    entry's or attribute's own value: stats["n"] + 1, stats.get("n", 0) + 1, getattr(update, "calls", 0) + 1; not
+    another entry (adv[t] = r[t] + g * adv[t + 1]) nor the container's dtype or device (buf[i] = as_tensor(x,
+    dtype=buf.dtype))."""
+    written, container = ast.unparse(target), ast.unparse(target.value)
+    for v in ast.walk(value):
+        if isinstance(v, (ast.Subscript, ast.Attribute)) and ast.unparse(v) == written:
+            return True
+        if isinstance(v, ast.Call) and isinstance(v.func, ast.Attribute) and v.func.attr == "get":
+            if isinstance(target, ast.Subscript) and ast.unparse(v.func.value) == container:
+                return True
+        if isinstance(v, ast.Call) and isinstance(v.func, ast.Name) and v.func.id == "getattr" and len(v.args) >= 2:
+            attribute = isinstance(target, ast.Attribute) and ast.unparse(v.args[0]) == container
+            if attribute and isinstance(v.args[1], ast.Constant) and v.args[1].value == target.attr:
+                return True
+    return False
+
+
 def overwritten_whole(node) -> "str | None":
     """The plain name whose object `node` overwrites or empties whole (x.copy_(y), x.fill_(0), x.clear(), x[:] = y),
     so that what it held before is gone, or None."""
@@ -224,10 +277,8 @@ def name_events(node, local=frozenset()):
     overwritten = overwritten_whole(node)
     if overwritten and overwritten not in local:
         if isinstance(node, ast.Call):  # its arguments first; from its own value (ema.copy_(0.9 * ema + x)): a change
-            inner = [e for a in [*node.args, *(k.value for k in node.keywords)] for e in name_events(a, local)]
-            yield from inner
-            itself = any(name == overwritten and what != "set" for name, what, _ in inner)
-            yield overwritten, "changed" if itself else "set", node.lineno
+            yield from (e for a in [*node.args, *(k.value for k in node.keywords)] for e in name_events(a, local))
+            yield overwritten, "changed" if overwrites_from_itself(node, overwritten) else "set", node.lineno
             return
         yield overwritten, "set", node.lineno  # x[:] = ...: the assignment's value came first
         return
@@ -376,6 +427,8 @@ def carried_locals(code, given=frozenset()) -> list:
             if how == "global" or name in carrying:  # a module-level name's (rebound_globals), one the loop sets
                 continue
             if how in ("attribute", "default") and name not in set_at:  # a function main defines, as run.start finds it
+                if name not in defined:  # a function's own function: not main's
+                    continue
                 set_at[name] = code.co_firstlineno + defined[name].lineno - 1
                 value[name] = None
             if name not in shadowed and name in set_at and name not in restored | own | set(given) | {c.name for c in carried}:
@@ -422,19 +475,21 @@ def changed_by(function, defined=frozenset()) -> list:
     )
     params += [a for a, d in zip(function.args.kwonlyargs, function.args.kw_defaults) if d is not None]
     mutable = {a.arg for a, d in zip(params, defaults) if isinstance(d, MUTABLE_DEFAULTS)}
-    for n in own_nodes(function):
+    reset = set()  # entries and attributes the call sets before it changes them (stats["n"] = 0, then += 1)
+    for n in sorted(own_nodes(function), key=lambda n: (getattr(n, "lineno", 0), getattr(n, "col_offset", 0))):
         name, how = changed_in_place(n), "in place"
         whole = overwritten_whole(n) if isinstance(n, ast.Call) else None
-        if whole and any(isinstance(v, ast.Name) and v.id == whole for a in n.args for v in ast.walk(a)):
+        if whole and overwrites_from_itself(n, whole):
             name = whole  # ema.copy_(0.9 * ema + x): from its own value
         if isinstance(n, (ast.AugAssign, ast.Assign)):
-            targets = n.targets if isinstance(n, ast.Assign) else [n.target]
+            name, targets = None, n.targets if isinstance(n, ast.Assign) else [n.target]
             for target in (t for t in targets if isinstance(t, (ast.Subscript, ast.Attribute))):
                 root, through_attribute = root_of(target)
-                from_itself = isinstance(n, ast.AugAssign) or any(
-                    isinstance(v, ast.Name) and v.id == root for v in ast.walk(n.value)
-                )  # x[k] = x[k] + 1, x.get(k, 0) + 1; not cache[k] = v
-                if root is not None and from_itself and (not through_attribute or root in defined):
+                from_itself = isinstance(n, ast.AugAssign) or from_its_value(target, n.value)
+                if not from_itself:
+                    reset.add(ast.unparse(target))
+                    continue
+                if root is not None and ast.unparse(target) not in reset and (not through_attribute or root in defined):
                     name, how = root, "attribute" if through_attribute else "in place"
         if name is None or first.get(name) == "set":
             continue
@@ -638,7 +693,9 @@ def change_phrase(function: str, how: str, whose: str, text: str, line: str) -> 
         return f"`{function}` changes {whose} in place (`{text}`, {line})"
     if how == "attribute":
         return f"`{function}` changes an attribute of {whose} (`{text}`, {line})"
-    return f"`{function}` changes its own default argument in place (`{text}`, {line})"
+    if how == "default":
+        return f"`{function}` changes its own default argument in place (`{text}`, {line})"
+    raise ValueError(f"change_phrase: no phrase for {how!r}")
 
 
 CARRIED_FIX = (
@@ -796,7 +853,13 @@ class Run:
             self.carried[carried.name] = (carried, carried_state(value))
         # module-level names a function of the script rebinds (global count): compared at each checkpoint too
         rebound = rebound_globals(self.caller.f_code) if self.args.checkpoint_frequency else []
-        self.carried_globals = {name: (*where, carried_state(script.get(name))) for name, *where in rebound}
+        held_storage = self.held_tensors() if rebound else set()
+        self.carried_globals = {
+            name: (*where, carried_state(script.get(name)))
+            for name, *where in rebound
+            if id(script.get(name)) not in self.watched  # a part given to run.start (a script without main)
+            and not (isinstance(script.get(name), torch.Tensor) and script[name].untyped_storage().data_ptr() in held_storage)
+        }
         self.check_stacked_for_the_seeds()
         if len(self.seeds) > 1:  # a tensor part (log_alpha) one per seed, with or without checkpoints
             states = {name: part_state(p) for name, p in parts.items()}
@@ -828,7 +891,8 @@ class Run:
         self.logs = Logs(self.args, self.run_dirs, self.seeds, self.first_step, self.eval_returns, device, self.args_given)
         self.next_checkpoint = self.first_step + self.args.checkpoint_frequency
         self.args_at_start, self.args_set_in_main = set(vars(self.args)), None
-        if self.args.checkpoint_frequency or self.checkpoints:
+        self.args_counted = args_counted(self.caller.f_code, {k for k, v in self.caller.f_locals.items() if v is self.args})
+        if self.checkpoints or (self.args.checkpoint_frequency and not fresh_run_only(self.caller)):
             self.generators_at_start = global_generators()
         if isinstance(envs, SeedEnvs):
             return np.stack(observations) if observations else None
@@ -840,10 +904,11 @@ class Run:
         as the loop begins, after run.start, it checks that nothing drew from the global random generators since."""
         if self.generators_at_start is not None:
             before, self.generators_at_start = self.generators_at_start, None
-            drawn = [name for name, state in global_generators().items() if state != before.get(name)]
+            drawn = [name for name, state in global_generators().items() if name in before and state != before[name]]
             if drawn:
                 fail(
-                    f"main drew from {' and '.join(drawn)} random generator between run.start and its loop (a random "
+                    f"main drew from {' and '.join(drawn)} random generator{'s' if len(drawn) > 1 else ''} between "
+                    "run.start and its loop (a random "
                     "prior, a fresh network built there): a run resumed from a checkpoint would draw it from the "
                     "checkpoint's generator, not as the run began; draw it before run.start (and give a tensor that must "
                     "stay to run.start's parts, a network to its nets), or in the loop"
@@ -1278,8 +1343,9 @@ class Run:
                     f"and --resume would restore that one; change it in place instead ({name}.copy_(...), "
                     f"{name}.mul_(...); an object: its load_state_dict(...))"
                 )
-        if self.args_set_in_main is None:  # attributes main gave args after run.start, as the loop's first step left them
-            self.args_set_in_main = {k: carried_state(v) for k, v in vars(args).items() if k not in self.args_at_start}
+        if self.args_set_in_main is None:  # attributes main gave args after run.start and changes from their own value
+            counted = {k: v for k, v in vars(args).items() if k not in self.args_at_start and k in self.args_counted}
+            self.args_set_in_main = {k: carried_state(v) for k, v in counted.items()}
         if args.checkpoint_frequency and can_checkpoint and self.next_checkpoint <= step + 1 < args.total_timesteps:
             self.check_logged_steps(step + 1)
             self.check_args_set_in_main(step + 1)

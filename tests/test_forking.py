@@ -2260,6 +2260,9 @@ def test_a_draw_between_run_start_and_the_loop_stops_a_run_with_checkpoints(tmp_
     assert_stops_only_with_checkpoints(tmp_path, edit, drawn)
     before = functools.partial(edit, at="    obs = run.start(")
     assert run_fork(tmp_path, before, 1, "--checkpoint-frequency", "150").returncode == 0
+    warm_up = "    if not run.checkpoints:  # a fresh run only: a resumed one skips it\n        torch.randn(3)\n"
+    fresh_only = lambda s: s.replace(LOOP_AT, warm_up + LOOP_AT, 1)  # noqa: E731
+    assert run_fork(tmp_path, fresh_only, 1, "--checkpoint-frequency", "150").returncode == 0
 
 
 def test_logging_past_the_loop_step_stops_a_run_with_checkpoints(tmp_path):
@@ -2288,6 +2291,9 @@ def test_an_attribute_main_gives_args_after_run_start_and_changes_stops_a_run_wi
     assert_stops_only_with_checkpoints(tmp_path, edit, stop)
     before = functools.partial(edit, at="    obs = run.start(")
     assert run_fork(tmp_path, before, 1, "--checkpoint-frequency", "150").returncode == 0
+    recomputed = "        args.frac = 1 - global_step / args.total_timesteps  # set anew at each step\n"
+    anew = lambda s: s.replace(STEP_AT, recomputed + STEP_AT, 1)  # noqa: E731
+    assert run_fork(tmp_path, anew, 1, "--checkpoint-frequency", "150").returncode == 0
 
 
 def test_another_name_of_a_held_weight_changed_in_place_runs_with_checkpoints(tmp_path):
@@ -2342,9 +2348,14 @@ def test_changed_by_finds_what_a_function_carries_from_call_to_call():
             logs.clear()
             logs.append(x)
             n[0] += 1
+            tally2["n"] = 0  # set anew at each call, then counted: nothing carried
+            tally2["n"] += 1
+            buf[i] = torch.as_tensor(x, dtype=buf.dtype)
+            adv[t] = r[t] + g * adv[t + 1]
 
-            def inner():
+            def inner(y, acc=[]):
                 inner_list.append(1)
+                acc.append(y)
         """
     )
     function = ast.parse(source).body[0]
@@ -2363,6 +2374,31 @@ def test_changed_by_finds_what_a_function_carries_from_call_to_call():
     ]
     defaults = [(name, how, text) for name, _, how, text in changed_by(ast.parse(source).body[0], set())]
     assert ("update", "default", "n[0] += 1") in defaults and ("update", "attribute", "update.calls += 1") not in defaults
+    inner = ast.parse(source).body[0].body[-1]
+    assert [(name, how) for name, _, how, _ in changed_by(inner)] == [("inner_list", "in place"), ("inner", "default")]
+
+
+def test_a_default_argument_of_a_function_inside_mains_function_is_not_mains():
+    """A function's own function changing its default argument is not one of main's names to compare (it was a
+    KeyError at run.start); main's own function doing so is."""
+    from rl_utils.run import carried_locals
+
+    def nested(run):
+        def update(x):
+            def inner(y, acc=[]):
+                acc.append(y)
+
+            inner(x)
+
+        def counted(x, n=[0]):
+            n[0] += 1
+
+        for step in range(3):
+            update(step)
+            counted(step)
+            run.end_step(step)
+
+    assert [(c.name, c.how, c.via) for c in carried_locals(nested.__code__)] == [("counted", "default", "counted")]
 
 
 BONUS = """
