@@ -68,7 +68,7 @@ def fresh_run_only(frame) -> bool:
     """Whether main runs code between run.start and its loop only in a fresh run (if not run.checkpoints: a warm-up
     of random steps): a resumed run skips it, so its draws are not redrawn on --resume."""
     body = main_body(frame.f_code)
-    loop = next((loop for loop in loops(body) if calls_end_step(loop)), None) if body is not None else None
+    loop = training_loop(body)
     if loop is None:
         return False
     start = frame.f_lineno - frame.f_code.co_firstlineno + 1  # run.start's line, in body's numbering
@@ -197,6 +197,11 @@ def end_step_calls(node) -> list:
 
 def calls_end_step(node) -> bool:
     return bool(end_step_calls(node))
+
+
+def training_loop(body) -> "ast.AST | None":
+    """The first loop of `body` (main_body's) that calls run.end_step, or None (no such loop, or no source)."""
+    return next((loop for loop in loops(body) if calls_end_step(loop)), None) if body is not None else None
 
 
 # methods that change their object from what it held (an accumulation: a list's, a deque's or a set's new items, a
@@ -373,7 +378,7 @@ def carried_locals(code, given=frozenset()) -> list:
     own variable, and what run.start restores: its return and run.start_step, and names computed before the loop from
     them or, after run.start, from what it was given (alpha = log_alpha.exp()). [] if the source cannot be read."""
     body = main_body(code)
-    loop = next((loop for loop in loops(body) if calls_end_step(loop)), None) if body is not None else None
+    loop = training_loop(body)
     if loop is None:
         return []
     runs = {call.func.value.id for call in end_step_calls(loop) if isinstance(call.func.value, ast.Name)}
@@ -854,12 +859,12 @@ class Run:
         # module-level names a function of the script rebinds (global count): compared at each checkpoint too
         rebound = rebound_globals(self.caller.f_code) if self.args.checkpoint_frequency else []
         held_storage = self.held_tensors() if rebound else set()
-        self.carried_globals = {
-            name: (*where, carried_state(script.get(name)))
-            for name, *where in rebound
-            if id(script.get(name)) not in self.watched  # a part given to run.start (a script without main)
-            and not (isinstance(script.get(name), torch.Tensor) and script[name].untyped_storage().data_ptr() in held_storage)
-        }
+        self.carried_globals = {}
+        for name, *where in rebound:
+            x = script.get(name)
+            if id(x) in self.watched or (isinstance(x, torch.Tensor) and x.untyped_storage().data_ptr() in held_storage):
+                continue  # a part given to run.start (a script without main), another name of a held tensor
+            self.carried_globals[name] = (*where, carried_state(x))
         self.check_stacked_for_the_seeds()
         if len(self.seeds) > 1:  # a tensor part (log_alpha) one per seed, with or without checkpoints
             states = {name: part_state(p) for name, p in parts.items()}

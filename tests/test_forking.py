@@ -349,6 +349,12 @@ def assert_stops_only_with_checkpoints(tmp_path, edit, error_start: str):
     assert run_fork(tmp_path, edit, 1).returncode == 0
 
 
+def assert_runs_with_checkpoints(tmp_path, edit):
+    """The fork (run_fork's, one seed) runs to its end writing a checkpoint every 150 steps."""
+    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
+    assert result.returncode == 0, result.stderr
+
+
 def assert_one_seed_runs_and_two_stop(tmp_path, edit, error_start: str):
     """The fork runs to its end with one seed and stops with two, its last line of stderr starting `error_start`."""
     one, two = tmp_path / "one", tmp_path / "two"
@@ -2086,7 +2092,7 @@ def test_a_fork_that_runs_code_after_end_step_is_refused_at_the_start_of_a_run_w
     assert_fork_stops(tmp_path, edit, error, 1, "--checkpoint-frequency", "150")
     assert run_fork(tmp_path, edit, 1).returncode == 0
     before = lambda s: s.replace(STEP_AT, reset + STEP_AT, 1)  # noqa: E731
-    assert run_fork(tmp_path, before, 1, "--checkpoint-frequency", "150").returncode == 0  # before it: in the step
+    assert_runs_with_checkpoints(tmp_path, before)  # before it: in the step
 
 
 LOOP_AT = "    for global_step in range(run.start_step, args.total_timesteps):\n"
@@ -2129,7 +2135,7 @@ def test_a_number_main_carries_from_step_to_step_stops_a_run_with_checkpoints(tm
     assert_fork_stops(tmp_path, drawn, carries + unknown, 1, "--checkpoint-frequency", "150")
     assert run_fork(tmp_path, edit, 1).returncode == 0
     in_flag = functools.partial(edit, noise="args.exploration_noise")
-    assert run_fork(tmp_path, in_flag, 1, "--checkpoint-frequency", "150").returncode == 0
+    assert_runs_with_checkpoints(tmp_path, in_flag)
     in_part = functools.partial(edit, given=True)
     assert "noise=noise)" in in_part(td3_source())
     assert run_fork(tmp_path, in_part, 2, "--checkpoint-frequency", "150").returncode == 0
@@ -2177,8 +2183,7 @@ def test_a_reset_from_fresh_copies_and_a_value_a_function_stashes_run_with_check
         return source.replace(STEP_AT, reset + STEP_AT, 1)
 
     assert "reset_critics()" in edit(td3_source()) and "nonlocal last_qf_loss" in edit(td3_source())
-    result = run_fork(tmp_path, edit, 1, "--checkpoint-frequency", "150")
-    assert result.returncode == 0, result.stderr
+    assert_runs_with_checkpoints(tmp_path, edit)
 
 
 def test_a_module_level_counter_a_function_rebinds_stops_a_run_with_checkpoints(tmp_path):
@@ -2259,10 +2264,10 @@ def test_a_draw_between_run_start_and_the_loop_stops_a_run_with_checkpoints(tmp_
     )
     assert_stops_only_with_checkpoints(tmp_path, edit, drawn)
     before = functools.partial(edit, at="    obs = run.start(")
-    assert run_fork(tmp_path, before, 1, "--checkpoint-frequency", "150").returncode == 0
+    assert_runs_with_checkpoints(tmp_path, before)
     warm_up = "    if not run.checkpoints:  # a fresh run only: a resumed one skips it\n        torch.randn(3)\n"
     fresh_only = lambda s: s.replace(LOOP_AT, warm_up + LOOP_AT, 1)  # noqa: E731
-    assert run_fork(tmp_path, fresh_only, 1, "--checkpoint-frequency", "150").returncode == 0
+    assert_runs_with_checkpoints(tmp_path, fresh_only)
 
 
 def test_logging_past_the_loop_step_stops_a_run_with_checkpoints(tmp_path):
@@ -2290,10 +2295,10 @@ def test_an_attribute_main_gives_args_after_run_start_and_changes_stops_a_run_wi
     )
     assert_stops_only_with_checkpoints(tmp_path, edit, stop)
     before = functools.partial(edit, at="    obs = run.start(")
-    assert run_fork(tmp_path, before, 1, "--checkpoint-frequency", "150").returncode == 0
+    assert_runs_with_checkpoints(tmp_path, before)
     recomputed = "        args.frac = 1 - global_step / args.total_timesteps  # set anew at each step\n"
     anew = lambda s: s.replace(STEP_AT, recomputed + STEP_AT, 1)  # noqa: E731
-    assert run_fork(tmp_path, anew, 1, "--checkpoint-frequency", "150").returncode == 0
+    assert_runs_with_checkpoints(tmp_path, anew)
 
 
 def test_another_name_of_a_held_weight_changed_in_place_runs_with_checkpoints(tmp_path):
@@ -2305,8 +2310,7 @@ def test_another_name_of_a_held_weight_changed_in_place_runs_with_checkpoints(tm
         return source.replace(STEP_AT, "        with torch.no_grad():\n            decayed.mul_(0.9999)\n" + STEP_AT, 1)
 
     for at in (LOOP_AT, "    obs = run.start("):
-        result = run_fork(tmp_path, functools.partial(edit, at=at), 1, "--checkpoint-frequency", "150")
-        assert result.returncode == 0, result.stderr
+        assert_runs_with_checkpoints(tmp_path, functools.partial(edit, at=at))
 
 
 def test_changed_by_finds_what_a_function_carries_from_call_to_call():
